@@ -1,0 +1,87 @@
+"""Camera geometry (OpenCV convention: x right, y down, z forward). Pure numpy.
+
+Names state the frame: ``points_C`` in the camera frame, ``points_W`` in the world
+frame, ``T_WC`` maps camera to world.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+
+def intrinsics(fx: float, fy: float, cx: float, cy: float) -> np.ndarray:
+    """3x3 pinhole intrinsic matrix."""
+    return np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]], dtype=np.float64)
+
+
+def pixel_grid(H: int, W: int) -> tuple[np.ndarray, np.ndarray]:
+    """Pixel coordinates (u, v), each (H, W) float64, at pixel centres' integer indices."""
+    v, u = np.mgrid[0:H, 0:W].astype(np.float64)
+    return u, v
+
+
+def ray_dirs_C(K: np.ndarray, H: int, W: int) -> np.ndarray:
+    """Un-normalised ray directions with z = 1, (H, W, 3): depth * dir is the 3D point."""
+    u, v = pixel_grid(H, W)
+    return np.stack([(u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1], np.ones_like(u)], axis=-1)
+
+
+def backproject(depth: np.ndarray, K: np.ndarray) -> np.ndarray:
+    """Depth (H, W) in metres -> points_C (H, W, 3); invalid pixels (depth <= 0) give NaN."""
+    depth = np.asarray(depth, dtype=np.float64)
+    pts = ray_dirs_C(K, *depth.shape) * depth[..., None]
+    pts[~(depth > 0)] = np.nan
+    return pts
+
+
+def transform(T: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """Apply a 4x4 transform to (..., 3) points."""
+    return points @ T[:3, :3].T + T[:3, 3]
+
+
+def rotate(T: np.ndarray, vectors: np.ndarray) -> np.ndarray:
+    """Apply the rotation of a 4x4 transform to (..., 3) vectors."""
+    return vectors @ T[:3, :3].T
+
+
+def invert(T: np.ndarray) -> np.ndarray:
+    """Inverse of a rigid 4x4 transform."""
+    Ti = np.eye(4)
+    R = T[:3, :3]
+    Ti[:3, :3] = R.T
+    Ti[:3, 3] = -R.T @ T[:3, 3]
+    return Ti
+
+
+def normals_from_depth(depth: np.ndarray, K: np.ndarray, max_jump: float = 0.1) -> np.ndarray:
+    """Surface normals in the camera frame from the depth image's x and y gradients.
+
+    The normal is the cross product of the central-difference tangents along image x and
+    y (the paper's footnote), unit length, oriented towards the camera. Pixels whose
+    neighbours are invalid, or where depth jumps by more than ``max_jump`` times the depth
+    (occlusion boundaries), get NaN. Returns (H, W, 3).
+    """
+    P = backproject(depth, K)
+    H, W = depth.shape
+    n = np.full((H, W, 3), np.nan)
+    if H < 3 or W < 3:
+        return n
+    dx = P[1:-1, 2:] - P[1:-1, :-2]
+    dy = P[2:, 1:-1] - P[:-2, 1:-1]
+    c = np.cross(dx, dy)
+    norm = np.linalg.norm(c, axis=-1, keepdims=True)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        c = c / norm
+    d = np.asarray(depth, dtype=np.float64)
+    dc = d[1:-1, 1:-1]
+    jump = np.maximum.reduce(
+        [np.abs(d[1:-1, 2:] - dc), np.abs(d[1:-1, :-2] - dc), np.abs(d[2:, 1:-1] - dc), np.abs(d[:-2, 1:-1] - dc)]
+    )
+    bad = ~(norm[..., 0] > 0) | (jump > max_jump * np.maximum(dc, 1e-6)) | ~(dc > 0)
+    # Orient towards the camera: n . p < 0.
+    pc = P[1:-1, 1:-1]
+    flip = np.einsum("hwc,hwc->hw", c, pc) > 0
+    c[flip] *= -1
+    c[bad] = np.nan
+    n[1:-1, 1:-1] = c
+    return n

@@ -1,0 +1,441 @@
+"""Wire protocol v1 (protocol.md): one MessagePack map per payload, arrays as
+``{"dtype", "shape", "data"}`` maps. Pure: bytes in, typed messages out.
+
+Every decoding problem raises :class:`ProtocolError` with a protocol error code
+(``bad_request`` for anything malformed); nothing here ever raises anything else on
+untrusted input.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Any, Iterable, Mapping
+
+import msgpack
+import numpy as np
+
+VERSION = 1
+ENCODING = "application/msgpack"
+ERROR_CODES = ("bad_request", "too_large", "no_map", "internal")
+SDF_SOURCES = ("fused", "implicit", "explicit")
+# numpy dtype strings with explicit byte order that the protocol allows.
+ALLOWED_DTYPES = ("<f4", "<f8", "<u2", "<i4", "<i8", "|u1")
+
+
+class ProtocolError(Exception):
+    """A protocol-level error with its wire code (``bad_request``, ``too_large``, ...)."""
+
+    def __init__(self, code: str, message: str):
+        if code not in ERROR_CODES:
+            raise ValueError(f"unknown error code {code!r}")
+        super().__init__(f"{code}: {message}")
+        self.code = code
+        self.message = message
+
+
+def _bad(message: str) -> ProtocolError:
+    return ProtocolError("bad_request", message)
+
+
+# ----------------------------------------------------------------------------- arrays
+
+
+def encode_array(a: np.ndarray, dtype: str | None = None) -> dict:
+    """Encode an array as a protocol array map (C order, explicit byte order)."""
+    arr = np.asarray(a)
+    if dtype is not None:
+        arr = arr.astype(np.dtype(dtype), copy=False)
+    dt = arr.dtype.newbyteorder("<") if arr.dtype.byteorder not in ("|", "<") else arr.dtype
+    if dt.str not in ALLOWED_DTYPES:
+        raise ValueError(f"dtype {arr.dtype} is not a protocol dtype {ALLOWED_DTYPES}")
+    arr = np.ascontiguousarray(arr, dtype=dt)
+    return {"dtype": dt.str, "shape": [int(s) for s in arr.shape], "data": arr.tobytes()}
+
+
+def decode_array(
+    obj: Any,
+    name: str,
+    dtypes: Iterable[str] = ALLOWED_DTYPES,
+    shape: tuple[int | None, ...] | None = None,
+) -> np.ndarray:
+    """Decode and check a protocol array map; ``shape`` entries of None match any size."""
+    if not isinstance(obj, Mapping):
+        raise _bad(f"'{name}' must be an array map {{dtype, shape, data}}, got {type(obj).__name__}")
+    for k in ("dtype", "shape", "data"):
+        if k not in obj:
+            raise _bad(f"'{name}' array is missing '{k}'")
+    dtype, shp, data = obj["dtype"], obj["shape"], obj["data"]
+    dtypes = tuple(dtypes)
+    if not isinstance(dtype, str) or dtype not in ALLOWED_DTYPES:
+        raise _bad(f"'{name}' dtype {dtype!r} is not one of {list(ALLOWED_DTYPES)}")
+    if dtype not in dtypes:
+        raise _bad(f"'{name}' dtype {dtype!r} not accepted here; expected one of {list(dtypes)}")
+    if not isinstance(shp, (list, tuple)) or not all(
+        isinstance(s, int) and not isinstance(s, bool) and s >= 0 for s in shp
+    ):
+        raise _bad(f"'{name}' shape must be a list of non-negative integers, got {shp!r}")
+    if not isinstance(data, (bytes, bytearray)):
+        raise _bad(f"'{name}' data must be binary, got {type(data).__name__}")
+    dt = np.dtype(dtype)
+    n = math.prod(shp) if shp else 1
+    if len(data) != n * dt.itemsize:
+        raise _bad(f"'{name}' data has {len(data)} bytes, shape {list(shp)} of {dtype} needs {n * dt.itemsize}")
+    if shape is not None:
+        if len(shp) != len(shape) or any(e is not None and e != s for e, s in zip(shape, shp)):
+            want = "x".join("N" if e is None else str(e) for e in shape)
+            raise _bad(f"'{name}' must have shape {want}, got {list(shp)}")
+    return np.frombuffer(bytes(data), dtype=dt).reshape(shp)
+
+
+# ----------------------------------------------------------------------------- maps
+
+
+def pack(msg: Mapping[str, Any]) -> bytes:
+    """Serialise a message map (adds ``"v": 1`` when missing)."""
+    m = dict(msg)
+    m.setdefault("v", VERSION)
+    return msgpack.packb(m, use_bin_type=True)
+
+
+def unpack(payload: bytes | bytearray | memoryview | None) -> dict:
+    """Parse a payload into a message map and check its version."""
+    if payload is None or len(payload) == 0:
+        raise _bad("empty payload: expected a MessagePack map")
+    try:
+        msg = msgpack.unpackb(bytes(payload), raw=False, strict_map_key=False)
+    except Exception as e:  # msgpack raises several unrelated types
+        raise _bad(f"payload is not valid MessagePack: {e}") from None
+    if not isinstance(msg, dict):
+        raise _bad(f"payload must be a MessagePack map, got {type(msg).__name__}")
+    if "v" not in msg:
+        raise _bad("message has no protocol version 'v'")
+    v = msg["v"]
+    if not isinstance(v, int) or isinstance(v, bool):
+        raise _bad(f"'v' must be an integer, got {v!r}")
+    if v != VERSION:
+        raise _bad(f"unsupported protocol major version {v}; this service speaks v{VERSION}")
+    return msg
+
+
+def _get(msg: Mapping, name: str, types: type | tuple, default: Any = ..., what: str = "") -> Any:
+    if name not in msg:
+        if default is ...:
+            raise _bad(f"missing field '{name}'")
+        return default
+    val = msg[name]
+    if isinstance(val, bool) and bool not in (types if isinstance(types, tuple) else (types,)):
+        raise _bad(f"'{name}' must be {what or types}, got a boolean")
+    if not isinstance(val, types):
+        raise _bad(f"'{name}' must be {what or types}, got {type(val).__name__}")
+    return val
+
+
+def _number(msg: Mapping, name: str, default: Any = ...) -> float:
+    val = _get(msg, name, (int, float), default, "a number")
+    if val is None:
+        return val
+    val = float(val)
+    if not math.isfinite(val):
+        raise _bad(f"'{name}' must be finite, got {val}")
+    return val
+
+
+def error_message(code: str, message: str) -> dict:
+    if code not in ERROR_CODES:
+        raise ValueError(f"unknown error code {code!r}")
+    return {"v": VERSION, "error": code, "message": str(message)}
+
+
+def decode_error(payload: bytes) -> ProtocolError:
+    """Turn an error reply's payload into a ProtocolError (``internal`` if unreadable)."""
+    try:
+        msg = unpack(payload)
+        code = msg.get("error")
+        return ProtocolError(code if code in ERROR_CODES else "internal", str(msg.get("message", "")))
+    except ProtocolError as e:
+        return ProtocolError("internal", f"unreadable error reply: {e.message}")
+
+
+# ----------------------------------------------------------------------------- geometry checks
+
+
+def is_rigid(T: np.ndarray, tol: float = 1e-3) -> bool:
+    """True for a finite 4x4 homogeneous rigid transform (rotation with det +1)."""
+    T = np.asarray(T, dtype=np.float64)
+    if T.shape != (4, 4) or not np.all(np.isfinite(T)):
+        return False
+    R = T[:3, :3]
+    return (
+        np.allclose(T[3], [0, 0, 0, 1], atol=tol)
+        and np.allclose(R.T @ R, np.eye(3), atol=tol)
+        and abs(np.linalg.det(R) - 1.0) < tol
+    )
+
+
+# ----------------------------------------------------------------------------- messages
+
+
+@dataclass
+class Keyframe:
+    """A posed depth image. ``depth`` is as sent (``<u2`` raw or ``<f4`` metres)."""
+
+    frame_id: int
+    stamp: float
+    depth: np.ndarray
+    K: np.ndarray
+    T_WC: np.ndarray
+    depth_scale: float | None = None
+    sensor: str = "depth"
+
+    def depth_m(self) -> np.ndarray:
+        """Depth in metres as float32 (H, W); 0 where there is no measurement."""
+        if self.depth.dtype == np.uint16:
+            d = self.depth.astype(np.float32) / np.float32(self.depth_scale)
+        else:
+            d = self.depth.astype(np.float32, copy=True)
+            d[~np.isfinite(d)] = 0.0
+        d[d < 0] = 0.0
+        return d
+
+    def to_msg(self) -> dict:
+        msg = {
+            "v": VERSION,
+            "frame_id": int(self.frame_id),
+            "stamp": float(self.stamp),
+            "depth": encode_array(self.depth),
+            "K": encode_array(self.K, "<f8"),
+            "T_WC": encode_array(self.T_WC, "<f8"),
+            "sensor": self.sensor,
+        }
+        if self.depth.dtype == np.uint16:
+            msg["depth_scale"] = float(self.depth_scale)
+        return msg
+
+    @classmethod
+    def from_msg(cls, msg: Mapping) -> "Keyframe":
+        """Decode and validate: dtype, depth shape against K, finite values, rigid pose."""
+        frame_id = _get(msg, "frame_id", int, what="an integer")
+        stamp = _number(msg, "stamp")
+        depth = decode_array(msg.get("depth"), "depth", ("<u2", "<f4"), (None, None))
+        H, W = depth.shape
+        if H < 2 or W < 2:
+            raise _bad(f"depth image {H}x{W} is too small")
+        depth_scale = None
+        if depth.dtype == np.uint16:
+            depth_scale = _number(msg, "depth_scale")
+            if depth_scale <= 0:
+                raise _bad(f"'depth_scale' must be positive, got {depth_scale}")
+        else:
+            fin = depth[np.isfinite(depth)]
+            if fin.size and fin.min() < 0:
+                raise _bad("depth has negative values")
+        K = decode_array(msg.get("K"), "K", ("<f8",), (3, 3))
+        if not np.all(np.isfinite(K)):
+            raise _bad("K has non-finite values")
+        fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
+        if fx <= 0 or fy <= 0 or K[1, 0] != 0 or K[2, 0] != 0 or K[2, 1] != 0 or K[2, 2] != 1:
+            raise _bad(f"K is not a pinhole intrinsic matrix: {K.tolist()}")
+        # The principal point must fall within (a margin around) the image.
+        if not (-0.5 * W <= cx <= 1.5 * W and -0.5 * H <= cy <= 1.5 * H):
+            raise _bad(f"depth shape {H}x{W} does not match K (principal point {cx:.1f},{cy:.1f})")
+        T_WC = decode_array(msg.get("T_WC"), "T_WC", ("<f8",), (4, 4))
+        if not is_rigid(T_WC):
+            raise _bad("T_WC is not a rigid 4x4 camera-to-world transform")
+        sensor = _get(msg, "sensor", str, "depth", "a string")
+        return cls(frame_id, stamp, depth.copy(), K.copy(), T_WC.copy(), depth_scale, sensor)
+
+
+@dataclass
+class WeightSnapshot:
+    version: int
+    step: int
+    stamp: float
+    model: dict
+    state: dict[str, np.ndarray]
+
+    def to_msg(self) -> dict:
+        return {
+            "v": VERSION,
+            "version": int(self.version),
+            "step": int(self.step),
+            "stamp": float(self.stamp),
+            "model": self.model,
+            "state": {k: encode_array(np.asarray(v, dtype=np.float32)) for k, v in self.state.items()},
+        }
+
+    @classmethod
+    def from_msg(cls, msg: Mapping) -> "WeightSnapshot":
+        version = _get(msg, "version", int, what="an integer")
+        step = _get(msg, "step", int, what="an integer")
+        stamp = _number(msg, "stamp")
+        model = _get(msg, "model", dict, what="a map")
+        state_raw = _get(msg, "state", dict, what="a map")
+        state = {}
+        for k, v in state_raw.items():
+            if not isinstance(k, str):
+                raise _bad("state keys must be strings")
+            state[k] = decode_array(v, f"state.{k}", ("<f4", "<f8"))
+        return cls(version, step, stamp, model, state)
+
+
+SURFEL_FIELDS = {
+    "center": ("<f4", (None, 3)),
+    "normal": ("<f4", (None, 3)),
+    "axis1": ("<f4", (None, 3)),
+    "axis2": ("<f4", (None, 3)),
+    "extent": ("<f4", (None, 2)),
+    "direction": ("<i4", (None,)),
+    "keyframe": ("<i8", (None,)),
+}
+
+
+@dataclass
+class SurfelMap:
+    """The explicit planar map: the Atlanta frame and N rectangular surfels."""
+
+    version: int
+    stamp: float
+    vertical: np.ndarray  # (3,)
+    horizontal: np.ndarray  # (M, 3)
+    surfels: dict[str, np.ndarray] = field(default_factory=dict)
+
+    @staticmethod
+    def empty_surfels() -> dict[str, np.ndarray]:
+        return {
+            k: np.zeros((0,) + tuple(s for s in shp[1:]), dtype=np.dtype(dt))
+            for k, (dt, shp) in SURFEL_FIELDS.items()
+        }
+
+    def __len__(self) -> int:
+        return int(len(self.surfels.get("center", ())))
+
+    def to_msg(self) -> dict:
+        surfels = self.surfels or self.empty_surfels()
+        return {
+            "v": VERSION,
+            "version": int(self.version),
+            "stamp": float(self.stamp),
+            "atlanta": {
+                "vertical": encode_array(self.vertical, "<f8"),
+                "horizontal": encode_array(np.asarray(self.horizontal).reshape(-1, 3), "<f8"),
+            },
+            "surfels": {k: encode_array(surfels[k], dt) for k, (dt, _) in SURFEL_FIELDS.items()},
+        }
+
+    @classmethod
+    def from_msg(cls, msg: Mapping) -> "SurfelMap":
+        version = _get(msg, "version", int, what="an integer")
+        stamp = _number(msg, "stamp")
+        atl = _get(msg, "atlanta", dict, what="a map")
+        vertical = decode_array(atl.get("vertical"), "atlanta.vertical", ("<f8",), (3,))
+        horizontal = decode_array(atl.get("horizontal"), "atlanta.horizontal", ("<f8",), (None, 3))
+        raw = _get(msg, "surfels", dict, what="a map")
+        surfels = {
+            k: decode_array(raw.get(k), f"surfels.{k}", (dt,), shp) for k, (dt, shp) in SURFEL_FIELDS.items()
+        }
+        n = {len(v) for v in surfels.values()}
+        if len(n) != 1:
+            raise _bad("surfel arrays have different lengths")
+        return cls(version, stamp, vertical.copy(), horizontal.copy(), {k: v.copy() for k, v in surfels.items()})
+
+
+@dataclass
+class SdfRequest:
+    points: np.ndarray  # (N, 3) float32 or float64, world frame
+    gradient: bool = False
+    collision_epsilon: float | None = None
+    source: str = "fused"
+
+    def to_msg(self) -> dict:
+        pts = np.asarray(self.points)
+        if pts.dtype != np.float64:
+            pts = pts.astype(np.float32)
+        msg = {"v": VERSION, "points": encode_array(pts), "gradient": bool(self.gradient), "source": self.source}
+        if self.collision_epsilon is not None:
+            msg["collision_epsilon"] = float(self.collision_epsilon)
+        return msg
+
+    @classmethod
+    def from_msg(cls, msg: Mapping, max_points: int | None = None) -> "SdfRequest":
+        pts_obj = msg.get("points")
+        if isinstance(pts_obj, Mapping) and max_points is not None:
+            shp = pts_obj.get("shape")
+            if isinstance(shp, (list, tuple)) and shp and isinstance(shp[0], int) and shp[0] > max_points:
+                raise ProtocolError("too_large", f"{shp[0]} points exceed this service's limit of {max_points}")
+        points = decode_array(pts_obj, "points", ("<f4", "<f8"), (None, 3))
+        if not np.all(np.isfinite(points)):
+            raise _bad("points contain non-finite values")
+        gradient = _get(msg, "gradient", bool, False, "a boolean")
+        eps = _number(msg, "collision_epsilon", None)
+        if eps is not None and eps <= 0:
+            raise _bad(f"'collision_epsilon' must be positive, got {eps}")
+        source = _get(msg, "source", str, "fused", "a string")
+        if source not in SDF_SOURCES:
+            raise _bad(f"'source' must be one of {list(SDF_SOURCES)}, got {source!r}")
+        return cls(points, gradient, eps, source)
+
+
+@dataclass
+class SdfReply:
+    map_version: int
+    sdf: np.ndarray
+    gradient: np.ndarray | None = None
+    collision: np.ndarray | None = None
+
+    def to_msg(self) -> dict:
+        msg = {"v": VERSION, "map_version": int(self.map_version), "sdf": encode_array(self.sdf, "<f4")}
+        if self.gradient is not None:
+            msg["gradient"] = encode_array(self.gradient, "<f4")
+        if self.collision is not None:
+            msg["collision"] = encode_array(self.collision, "<f4")
+        return msg
+
+    @classmethod
+    def from_msg(cls, msg: Mapping) -> "SdfReply":
+        mv = _get(msg, "map_version", int, what="an integer")
+        sdf = decode_array(msg.get("sdf"), "sdf", ("<f4",), (None,))
+        n = len(sdf)
+        grad = decode_array(msg["gradient"], "gradient", ("<f4",), (n, 3)) if "gradient" in msg else None
+        coll = decode_array(msg["collision"], "collision", ("<f4",), (n,)) if "collision" in msg else None
+        return cls(mv, sdf, grad, coll)
+
+
+@dataclass
+class MeshRequest:
+    resolution: float | None = None
+
+    def to_msg(self) -> dict:
+        msg = {"v": VERSION}
+        if self.resolution is not None:
+            msg["resolution"] = float(self.resolution)
+        return msg
+
+    @classmethod
+    def from_msg(cls, msg: Mapping) -> "MeshRequest":
+        res = _number(msg, "resolution", None)
+        if res is not None and res <= 0:
+            raise _bad(f"'resolution' must be positive, got {res}")
+        return cls(res)
+
+
+@dataclass
+class MeshReply:
+    map_version: int
+    vertices: np.ndarray
+    faces: np.ndarray
+
+    def to_msg(self) -> dict:
+        return {
+            "v": VERSION,
+            "map_version": int(self.map_version),
+            "vertices": encode_array(np.asarray(self.vertices).reshape(-1, 3), "<f4"),
+            "faces": encode_array(np.asarray(self.faces).reshape(-1, 3), "<i4"),
+        }
+
+    @classmethod
+    def from_msg(cls, msg: Mapping) -> "MeshReply":
+        mv = _get(msg, "map_version", int, what="an integer")
+        v = decode_array(msg.get("vertices"), "vertices", ("<f4",), (None, 3))
+        f = decode_array(msg.get("faces"), "faces", ("<i4",), (None, 3))
+        return cls(mv, v, f)
