@@ -1,0 +1,36 @@
+# Two commands, each sets everything up from nothing (idempotently) first:
+#   make demo   - the whole stack on the built-in synthetic building, on loopback
+#   make test   - the test suite
+PYTHON ?= python3
+VENV ?= .venv
+PY := $(VENV)/bin/python
+STAMP := $(VENV)/.aisdf-installed
+
+.PHONY: setup demo test bench-query bench clean
+
+setup: $(STAMP)
+
+$(STAMP): pyproject.toml
+	test -x $(PY) || $(PYTHON) -m venv $(VENV)
+	$(PY) -m pip install --quiet --upgrade pip
+	$(PY) -m pip install --quiet -e ".[dev]"
+	@# open3d (baseline, mesh ray casting) needs libusb at import; install it where apt-get can.
+	$(PY) -c "import open3d" 2>/dev/null || { command -v apt-get >/dev/null && \
+	  { apt-get install -y -qq libusb-1.0-0 >/dev/null 2>&1 || { apt-get update -qq && apt-get install -y -qq libusb-1.0-0; }; }; }
+	$(PY) -c "import open3d" || { echo "open3d does not import: install libusb-1.0-0 (Debian/Ubuntu)"; exit 1; }
+	touch $(STAMP)
+
+demo: setup
+	$(VENV)/bin/aisdf demo $(ARGS)
+
+test: setup
+	$(VENV)/bin/pytest -q $(ARGS)
+
+bench-query: setup
+	$(VENV)/bin/aisdf bench query $(ARGS)
+
+bench: setup
+	$(VENV)/bin/aisdf bench $(ARGS)
+
+clean:
+	rm -rf $(VENV) runs results .pytest_cache

@@ -1,0 +1,1 @@
+"""AiSDF frontend service: streams a posed depth source, selects keyframes, publishes them."""

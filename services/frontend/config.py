@@ -1,0 +1,44 @@
+"""Frontend service configuration (defaults here; file, AISDF_* environment, command line)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Literal
+
+from pydantic import Field
+
+from aisdf.config import Model, ServiceConfig
+
+
+class KeyframeConfig(Model):
+    """Keyframe selection by motion and overlap (a frame is a keyframe when any test fires)."""
+
+    translation_m: float = Field(0.3, gt=0, description="camera moved this far since the last keyframe")
+    rotation_deg: float = Field(20.0, gt=0, description="camera turned this much since the last keyframe")
+    min_overlap: float = Field(0.7, ge=0, le=1, description="share of the frame's points the last keyframe saw")
+    max_interval_s: float = Field(5.0, gt=0, description="a keyframe at least this often (iSDF forces one every 5 s)")
+    overlap_stride: int = Field(4, ge=1, description="pixel stride of the overlap test")
+    all_frames: bool = Field(False, description="send every frame as a keyframe")
+
+
+class FrontendConfig(ServiceConfig):
+    """Settings of ``aisdf-frontend``."""
+
+    source: str = Field("synthetic", description="synthetic, or a dataset kind (generic, 7scenes, tum, ...)")
+    path: Path | None = Field(None, description="dataset folder (not for synthetic)")
+    building: str = Field("office", description="synthetic building: office, manhattan, atlanta, stairs, ...")
+    seed: int = Field(0, description="synthetic building, trajectory and noise seed")
+    n_frames: int = Field(900, ge=1, description="synthetic sequence length (frames)")
+    width: int = Field(160, ge=8, description="synthetic image width")
+    height: int = Field(120, ge=8, description="synthetic image height")
+    noise: bool = Field(True, description="synthetic depth with the Kinect-like noise model")
+    fps: float = Field(30.0, gt=0, description="sensor frame rate of the source")
+    realtime: bool = Field(True, description="stream at the sensor's rate; false = as fast as possible")
+    start: int = Field(0, ge=0, description="first frame index")
+    stride: int = Field(1, ge=1, description="use every stride-th frame")
+    max_frames: int | None = Field(None, ge=1, description="stop after this many frames")
+    loop: bool = Field(False, description="start again at the end")
+    linger: bool = Field(False, description="stay up (answering info/frontend) after the source ends")
+    depth_encoding: Literal["f4", "u2"] = Field("f4", description="wire depth: f4 metres or u2 millimetres")
+    sensor: str = Field("depth", description="sensor name put in every keyframe")
+    keyframes: KeyframeConfig = Field(default_factory=KeyframeConfig)

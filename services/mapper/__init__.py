@@ -1,0 +1,1 @@
+"""AiSDF mapper service: trains the SDF continually from keyframes and publishes the map."""

@@ -1,0 +1,29 @@
+"""Mapper service configuration (defaults here; file, AISDF_* environment, command line)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any, Literal
+
+from pydantic import Field
+
+from aisdf.config import ServiceConfig
+
+
+class MapperConfig(ServiceConfig):
+    """Settings of ``aisdf-mapper``."""
+
+    preset: Literal["auto", "paper", "cpu"] = Field(
+        "auto", description="training preset: paper = iSDF's numbers exactly; cpu = tuned for a 2-core CPU; "
+        "auto = paper with CUDA, else cpu")
+    training: dict[str, Any] = Field(
+        default_factory=dict, description="overrides of the preset's training fields, e.g. {rays_per_frame: 150}")
+    atlanta: bool = Field(True, description="estimate the Atlanta frame and surfels, publish map/surfels")
+    surfel_mask: bool = Field(True, description="Table II switch: sample iSDF rays off surfels, points on surfels")
+    surfel_loss: bool = Field(True, description="Table II switch: the surfel loss on surfel points")
+    queue_max: int = Field(16, ge=1, description="keyframes waiting to be trained on; the oldest is dropped beyond")
+    snapshot_period_s: float = Field(1.0, gt=0, description="how often weights (and surfels) are published")
+    checkpoint_dir: Path | None = Field(None, description="where the map is checkpointed and resumed from")
+    checkpoint_period_s: float = Field(30.0, gt=0, description="how often the checkpoint is written")
+    torch_threads: int | None = Field(None, ge=1, description="torch CPU threads; None keeps torch's default")
+    idle_sleep_s: float = Field(0.05, gt=0, description="sleep when there is nothing to train on")

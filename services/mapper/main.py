@@ -1,0 +1,222 @@
+"""``aisdf-mapper``: trains the SDF continually on incoming keyframes and publishes the map.
+
+* ``keyframes`` (subscribed): every keyframe is validated on arrival; a bad one is
+  rejected with a log line and counted, and the map is untouched. Accepted keyframes
+  wait in a bounded queue; when the mapper trains slower than keyframes come, the
+  oldest waiting one is dropped, logged and counted, so memory stays bounded.
+* ``map/weights`` and ``map/surfels``: published every ``snapshot_period_s`` while
+  training, and answered on ``get`` with the latest (late joiners).
+* ``info/mapper`` (extension, not part of protocol v1): a map of counters and the
+  per-module timings, for the demo and operators.
+"""
+
+from __future__ import annotations
+
+import argparse
+import collections
+import logging
+import signal
+import threading
+import time
+import uuid
+from pathlib import Path
+
+import torch
+
+from aisdf import keys, protocol, transport
+from aisdf.config import add_common_args, config_from_args
+from aisdf.pipeline import MappingPipeline
+
+from .config import MapperConfig
+
+log = logging.getLogger("aisdf.mapper")
+INFO_KEY = "info/mapper"
+CHECKPOINT_NAME = "mapper-checkpoint.pt"
+
+
+class MapperNode:
+    def __init__(self, cfg: MapperConfig, session, pipeline: MappingPipeline | None = None):
+        self.cfg = cfg
+        self.session = session
+        self.ns = cfg.namespace
+        self.pipeline = pipeline or MappingPipeline.from_settings(
+            cfg.preset, cfg.training, atlanta=cfg.atlanta, surfel_mask=cfg.surfel_mask, surfel_loss=cfg.surfel_loss)
+        self.pending: collections.deque = collections.deque()
+        self.lock = threading.Lock()
+        self.counts = {"received": 0, "rejected": 0, "dropped": 0, "accepted": 0}
+        self.version = 0
+        self._latest_weights: bytes | None = None
+        self._latest_surfels: bytes | None = None
+        self._stop = threading.Event()
+        self._decls: list = []
+        self._thread = threading.Thread(target=self._train_loop, name="train", daemon=True)
+        self._restore()
+
+    # ------------------------------------------------------------------ checkpoints
+
+    def _ckpt_path(self) -> Path | None:
+        return Path(self.cfg.checkpoint_dir) / CHECKPOINT_NAME if self.cfg.checkpoint_dir else None
+
+    def _restore(self) -> None:
+        path = self._ckpt_path()
+        if path is None or not path.exists():
+            return
+        ck = torch.load(path, map_location="cpu", weights_only=False)
+        self.pipeline = MappingPipeline.restore(ck["pipeline"])
+        self.version = int(ck["version"])
+        log.info("resumed from %s: version %d, %d steps, %d keyframes", path, self.version, self.pipeline.steps,
+                 self.pipeline.n_keyframes)
+
+    def save_checkpoint(self) -> None:
+        path = self._ckpt_path()
+        if path is None:
+            return
+        path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = path.with_suffix(".tmp")
+        torch.save({"pipeline": self.pipeline.checkpoint(), "version": self.version}, tmp)
+        tmp.replace(path)
+
+    # ------------------------------------------------------------------ keyframes in
+
+    def on_keyframe(self, payload: bytes) -> None:
+        self.counts["received"] += 1
+        try:
+            kf = protocol.Keyframe.from_msg(protocol.unpack(payload))
+        except protocol.ProtocolError as e:
+            self.counts["rejected"] += 1
+            log.warning("rejected keyframe: %s", e.message)
+            return
+        with self.lock:
+            self.pending.append(kf)
+            if len(self.pending) > self.cfg.queue_max:
+                old = self.pending.popleft()
+                self.counts["dropped"] += 1
+                log.warning("dropped keyframe %d: %d waiting, training is slower than keyframes arrive "
+                            "(dropped so far: %d)", old.frame_id, self.cfg.queue_max, self.counts["dropped"])
+
+    # ------------------------------------------------------------------ training
+
+    def _take_pending(self) -> list[protocol.Keyframe]:
+        with self.lock:
+            items = list(self.pending)
+            self.pending.clear()
+        return items
+
+    def _publish(self) -> None:
+        self.version += 1
+        snap = self.pipeline.weight_snapshot(self.version)
+        self._latest_weights = protocol.pack(snap.to_msg())
+        self.session.put(keys.key(self.ns, keys.MAP_WEIGHTS), self._latest_weights, encoding=transport.ENCODING)
+        smap = self.pipeline.surfel_map(self.version)
+        if smap is not None:
+            self._latest_surfels = protocol.pack(smap.to_msg())
+            self.session.put(keys.key(self.ns, keys.MAP_SURFELS), self._latest_surfels, encoding=transport.ENCODING)
+
+    def _train_loop(self) -> None:
+        last_pub = last_ckpt = time.monotonic()
+        dirty = False
+        while not self._stop.is_set():
+            for kf in self._take_pending():
+                try:
+                    self.pipeline.add_keyframe(kf)
+                    self.counts["accepted"] += 1
+                except ValueError as e:
+                    self.counts["rejected"] += 1
+                    log.warning("rejected keyframe %d: %s", kf.frame_id, e)
+            if self.pipeline.n_keyframes == 0:
+                self._stop.wait(self.cfg.idle_sleep_s)
+                continue
+            try:
+                self.pipeline.step()
+                dirty = True
+            except Exception:  # noqa: BLE001 - keep serving the last good map
+                log.exception("training step failed")
+                self._stop.wait(1.0)
+            now = time.monotonic()
+            if dirty and now - last_pub >= self.cfg.snapshot_period_s:
+                self._publish()
+                last_pub, dirty = now, False
+            if self.cfg.checkpoint_dir and now - last_ckpt >= self.cfg.checkpoint_period_s:
+                self.save_checkpoint()
+                last_ckpt = now
+
+    # ------------------------------------------------------------------ queries
+
+    def info(self) -> dict:
+        return {"v": protocol.VERSION, "version": self.version, "steps": self.pipeline.steps,
+                "keyframes": self.pipeline.n_keyframes, "pending": len(self.pending), **self.counts,
+                "stats": self.pipeline.stats()}
+
+    def _latest(self, name: str):
+        def on_query(q):
+            data = self._latest_weights if name == keys.MAP_WEIGHTS else self._latest_surfels
+            if data is None:
+                q.reply_err(protocol.pack(protocol.error_message("no_map", f"no {name} published yet")),
+                            encoding=transport.ENCODING)
+            else:
+                q.reply(q.key_expr, data, encoding=transport.ENCODING)
+
+        return on_query
+
+    def start(self) -> None:
+        s = self.session
+        self._decls = [
+            s.declare_subscriber(keys.key(self.ns, keys.KEYFRAMES),
+                                 lambda sample: self.on_keyframe(transport.payload_bytes(sample.payload))),
+            s.declare_queryable(keys.key(self.ns, keys.MAP_WEIGHTS), self._latest(keys.MAP_WEIGHTS)),
+            s.declare_queryable(keys.key(self.ns, keys.MAP_SURFELS), self._latest(keys.MAP_SURFELS)),
+            transport.serve(s, keys.key(self.ns, INFO_KEY), lambda _req: self.info()),
+            s.liveliness().declare_token(keys.status_key(self.ns, "mapper", uuid.uuid4().hex[:8])),
+        ]
+        if self.pipeline.n_keyframes:
+            self._publish()  # a resumed map is served at once
+        self._thread.start()
+
+    def stop(self) -> None:
+        self._stop.set()
+        self._thread.join(timeout=30)
+        for d in self._decls:
+            d.undeclare()
+        self.save_checkpoint()
+
+
+def main(cfg: MapperConfig, stop: threading.Event | None = None) -> None:
+    if cfg.torch_threads:
+        torch.set_num_threads(cfg.torch_threads)
+    stop = stop or threading.Event()
+    with transport.open_session(cfg.zenoh) as session:
+        node = MapperNode(cfg, session)
+        node.start()
+        log.info("mapper up under '%s' (%s)", cfg.namespace, node.pipeline.describe())
+        last = time.monotonic()
+        while not stop.wait(0.5):
+            if time.monotonic() - last > 10:
+                i = node.info()
+                log.info("version %d, %d steps, %d keyframes, %d pending, %d rejected, %d dropped", i["version"],
+                         i["steps"], i["keyframes"], i["pending"], i["rejected"], i["dropped"])
+                last = time.monotonic()
+        node.stop()
+
+
+def cli(argv: list[str] | None = None) -> None:
+    p = argparse.ArgumentParser(
+        prog="aisdf-mapper",
+        description="AiSDF mapper: subscribes to <namespace>/keyframes, trains the neural SDF continually with "
+        "Atlanta-aware sampling, publishes <namespace>/map/weights and <namespace>/map/surfels.",
+    )
+    add_common_args(p)
+    p.add_argument("--preset", choices=["auto", "paper", "cpu"], help="training preset (default auto)")
+    p.add_argument("--no-atlanta", action="store_true", help="plain iSDF: no Atlanta frame, surfels or surfel map")
+    p.add_argument("--checkpoint-dir", help="checkpoint the map here and resume from it")
+    args = p.parse_args(argv)
+    cfg = config_from_args(MapperConfig, args, {"preset": args.preset, "checkpoint_dir": args.checkpoint_dir,
+                                                "atlanta": False if args.no_atlanta else None})
+    logging.basicConfig(level=cfg.log_level, format="%(asctime)s mapper %(levelname)s %(message)s")
+    stop = threading.Event()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, lambda *_: stop.set())
+    main(cfg, stop)
+
+
+if __name__ == "__main__":
+    cli()

@@ -1,0 +1,1 @@
+"""AiSDF query service: answers planners' SDF batches and mesh requests from the latest map."""

@@ -1,0 +1,22 @@
+"""Query service configuration (defaults here; file, AISDF_* environment, command line)."""
+
+from __future__ import annotations
+
+from typing import Literal
+
+from pydantic import Field
+
+from aisdf.config import ServiceConfig
+
+
+class QueryConfig(ServiceConfig):
+    """Settings of ``aisdf-query``."""
+
+    max_points: int = Field(1_000_000, ge=1, description="largest batch answered; above it: too_large")
+    chunk_points: int = Field(65_536, ge=1, description="points evaluated per network pass (bounds memory)")
+    device: Literal["auto", "cpu", "cuda"] = Field("auto", description="auto = cuda when available")
+    torch_threads: int | None = Field(None, ge=1, description="torch CPU threads; None keeps torch's default")
+    fuse_radius: float = Field(0.5, gt=0, description="fused source uses a surfel only when it is this close (m)")
+    mesh_resolution: float = Field(0.05, gt=0, description="default marching-cubes voxel size (m)")
+    mesh_max_cells: int = Field(16_000_000, ge=1, description="largest marching-cubes grid; above it: too_large")
+    weights_retry_s: float = Field(2.0, gt=0, description="how often to ask for the latest map until one arrives")

@@ -1,0 +1,195 @@
+"""``aisdf-query``: keeps the latest map and answers ``query/sdf`` and ``query/mesh``.
+
+It asks for the latest snapshot at start (and again until one arrives) and follows
+new ones, so the order in which services start does not matter. Requests are
+checked on Zenoh's thread (a malformed one is answered at once) and evaluated on
+worker threads; a bad request never stops the service.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import queue
+import signal
+import threading
+import time
+import uuid
+
+import torch
+
+from aisdf import keys, protocol, transport
+from aisdf.config import add_common_args, config_from_args
+
+from .config import QueryConfig
+from .engine import QueryEngine
+
+log = logging.getLogger("aisdf.query")
+
+
+class QueryNode:
+    """Zenoh wiring of a QueryEngine."""
+
+    def __init__(self, cfg: QueryConfig, session):
+        self.cfg = cfg
+        self.session = session
+        self.engine = QueryEngine.from_config(cfg)
+        self.ns = cfg.namespace
+        self.answered = 0
+        self.errors = 0
+        self._sdf_jobs: queue.Queue = queue.Queue()
+        self._mesh_jobs: queue.Queue = queue.Queue()
+        self._stop = threading.Event()
+        self._threads = [
+            threading.Thread(target=self._work, args=(self._sdf_jobs,), name="sdf-worker", daemon=True),
+            threading.Thread(target=self._work, args=(self._mesh_jobs,), name="mesh-worker", daemon=True),
+            threading.Thread(target=self._fetch_latest, name="latest", daemon=True),
+        ]
+        self._decls = []
+
+    # ------------------------------------------------------------------ map following
+
+    def _on_weights(self, msg: dict) -> None:
+        try:
+            snap = protocol.WeightSnapshot.from_msg(msg)
+            if self.engine.set_weights(snap):
+                log.info("map version %d (step %d) loaded", snap.version, snap.step)
+        except (protocol.ProtocolError, ValueError, KeyError, RuntimeError) as e:
+            log.warning("rejected a weight snapshot: %s", e)
+
+    def _on_surfels(self, msg: dict) -> None:
+        try:
+            smap = protocol.SurfelMap.from_msg(msg)
+            if self.engine.set_surfels(smap):
+                log.info("surfel map version %d with %d surfels loaded", smap.version, len(smap))
+        except (protocol.ProtocolError, ValueError, KeyError) as e:
+            log.warning("rejected a surfel map: %s", e)
+
+    def _subscriber(self, name: str, fn):
+        def cb(sample):
+            try:
+                fn(protocol.unpack(transport.payload_bytes(sample.payload)))
+            except protocol.ProtocolError as e:
+                log.warning("malformed message on %s: %s", name, e.message)
+
+        return self.session.declare_subscriber(keys.key(self.ns, name), cb)
+
+    def _fetch_latest(self) -> None:
+        """Late joiner: get the latest weights and surfels until the first weights arrive."""
+        while not self._stop.is_set():
+            for name, fn in ((keys.MAP_WEIGHTS, self._on_weights), (keys.MAP_SURFELS, self._on_surfels)):
+                msg = transport.get_latest(self.session, keys.key(self.ns, name), timeout=1.0)
+                if msg is not None:
+                    fn(msg)
+            if self.engine.state is not None:
+                return
+            self._stop.wait(self.cfg.weights_retry_s)
+
+    # ------------------------------------------------------------------ requests
+
+    def _reply_err(self, q, e: protocol.ProtocolError) -> None:
+        self.errors += 1
+        q.reply_err(protocol.pack(protocol.error_message(e.code, e.message)), encoding=transport.ENCODING)
+
+    def _accept(self, q, decode, jobs: queue.Queue) -> None:
+        """Zenoh thread: decode and validate now (errors answered at once), evaluate later."""
+        try:
+            req = decode(protocol.unpack(transport.payload_bytes(q.payload)))
+            if self.engine.state is None:
+                raise protocol.ProtocolError("no_map", "no map yet: the mapper has not published weights")
+        except protocol.ProtocolError as e:
+            log.info("rejected request: %s", e)
+            self._reply_err(q, e)
+            return
+        except Exception as e:  # noqa: BLE001 - never stop on a request
+            log.exception("internal error decoding a request")
+            self._reply_err(q, protocol.ProtocolError("internal", f"{type(e).__name__}: {e}"))
+            return
+        jobs.put((q, req))
+
+    def _work(self, jobs: queue.Queue) -> None:
+        while True:
+            item = jobs.get()
+            if item is None:
+                return
+            q, req = item
+            try:
+                if isinstance(req, protocol.SdfRequest):
+                    rep = self.engine.answer_sdf(req)
+                else:
+                    rep = self.engine.answer_mesh(req)
+                q.reply(q.key_expr, protocol.pack(rep.to_msg()), encoding=transport.ENCODING)
+                self.answered += 1
+            except protocol.ProtocolError as e:
+                self._reply_err(q, e)
+            except Exception as e:  # noqa: BLE001
+                log.exception("internal error answering a request")
+                self._reply_err(q, protocol.ProtocolError("internal", f"{type(e).__name__}: {e}"))
+            finally:
+                del q
+
+    # ------------------------------------------------------------------ lifecycle
+
+    def start(self) -> None:
+        max_pts = self.cfg.max_points
+        self._decls = [
+            self._subscriber(keys.MAP_WEIGHTS, self._on_weights),
+            self._subscriber(keys.MAP_SURFELS, self._on_surfels),
+            self.session.declare_queryable(
+                keys.key(self.ns, keys.QUERY_SDF),
+                lambda q: self._accept(q, lambda m: protocol.SdfRequest.from_msg(m, max_pts), self._sdf_jobs)),
+            self.session.declare_queryable(
+                keys.key(self.ns, keys.QUERY_MESH),
+                lambda q: self._accept(q, protocol.MeshRequest.from_msg, self._mesh_jobs)),
+            self.session.liveliness().declare_token(keys.status_key(self.ns, "query", uuid.uuid4().hex[:8])),
+        ]
+        for t in self._threads:
+            t.start()
+
+    def stop(self) -> None:
+        self._stop.set()
+        for d in self._decls:
+            d.undeclare()
+        self._sdf_jobs.put(None)
+        self._mesh_jobs.put(None)
+
+
+def main(cfg: QueryConfig, stop: threading.Event | None = None) -> None:
+    """Run the query service until ``stop`` is set (or SIGINT/SIGTERM)."""
+    if cfg.torch_threads:
+        torch.set_num_threads(cfg.torch_threads)
+    stop = stop or threading.Event()
+    with transport.open_session(cfg.zenoh) as session:
+        node = QueryNode(cfg, session)
+        node.start()
+        log.info("query service up under '%s' on %s", cfg.namespace, node.engine.device)
+        last = time.monotonic()
+        while not stop.wait(0.5):
+            if time.monotonic() - last > 10:
+                st = node.engine.state
+                log.info("map version %s, %d answered, %d errors", st.version if st else None, node.answered,
+                         node.errors)
+                last = time.monotonic()
+        node.stop()
+
+
+def cli(argv: list[str] | None = None) -> None:
+    p = argparse.ArgumentParser(
+        prog="aisdf-query",
+        description="AiSDF query service: answers planners' batches on <namespace>/query/sdf (signed distance, "
+        "gradient, CHOMP collision cost) and <namespace>/query/mesh, from the latest map the mapper published.",
+    )
+    add_common_args(p)
+    p.add_argument("--max-points", type=int, help="largest batch answered (default 1000000)")
+    p.add_argument("--device", choices=["auto", "cpu", "cuda"])
+    args = p.parse_args(argv)
+    cfg = config_from_args(QueryConfig, args, {"max_points": args.max_points, "device": args.device})
+    logging.basicConfig(level=cfg.log_level, format="%(asctime)s query %(levelname)s %(message)s")
+    stop = threading.Event()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, lambda *_: stop.set())
+    main(cfg, stop)
+
+
+if __name__ == "__main__":
+    cli()

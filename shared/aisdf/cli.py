@@ -1,0 +1,77 @@
+"""``aisdf``: the umbrella command (``demo``, ``bench``)."""
+
+from __future__ import annotations
+
+import argparse
+import logging
+
+from . import __version__
+
+
+def _demo(args) -> None:
+    from .demo import run
+
+    s = run(duration=args.duration, out=args.out, building=args.building, seed=args.seed, preset=args.preset)
+    if args.max_error_cm is not None and s.get("sdf_error_cm", 1e9) > args.max_error_cm:
+        raise SystemExit(f"SDF error {s.get('sdf_error_cm')} cm is above --max-error-cm {args.max_error_cm}")
+
+
+def _bench_query(args) -> None:
+    from .bench.query import run, table
+
+    for grad in ([False, True] if args.gradient == "both" else [args.gradient == "yes"]):
+        rows = run(sizes=args.sizes, repeats=args.repeats, preset=args.preset, gradient=grad, threads=args.threads,
+                   out=f"{args.out}/query{'_grad' if grad else ''}.json" if args.out else None)
+        print(table(rows))
+
+
+def _bench(args) -> None:
+    from .bench.suite import main as suite_main
+
+    suite_main(args)
+
+
+def main(argv: list[str] | None = None) -> None:
+    p = argparse.ArgumentParser(prog="aisdf", description="AiSDF: online Atlanta-world neural SDF mapping service.")
+    p.add_argument("--version", action="version", version=f"%(prog)s {__version__}")
+    p.add_argument("--log-level", default="WARNING", choices=["DEBUG", "INFO", "WARNING", "ERROR"])
+    sub = p.add_subparsers(dest="cmd", required=True)
+
+    d = sub.add_parser("demo", help="run frontend, mapper and query on the synthetic building, on loopback",
+                       description="Starts the three services as processes on loopback, maps the built-in synthetic "
+                       "building, shows live progress and the SDF error against ground truth, runs a planner "
+                       "example, and writes a mesh, a summary and a rerun recording (.rrd).")
+    d.add_argument("--duration", type=float, default=180.0, help="seconds to run (default 180)")
+    d.add_argument("--out", default="runs/demo", help="output folder (default runs/demo)")
+    d.add_argument("--building", default="office", help="synthetic building (default office)")
+    d.add_argument("--seed", type=int, default=0)
+    d.add_argument("--preset", default="auto", choices=["auto", "paper", "cpu"])
+    d.add_argument("--max-error-cm", type=float, help="exit non-zero if the final SDF error is above this")
+    d.set_defaults(fn=_demo)
+
+    b = sub.add_parser("bench", help="benchmarks: `aisdf bench` = the paper's tables; `aisdf bench query`",
+                       description="Without a subcommand: the paper's Tables I-III side by side on the same frames "
+                       "(Voxblox-like TSDF/ESDF map, iSDF, AiSDF without and with the explicit map), with error over "
+                       "time, SDF slices, meshes and the resolved configuration in a results folder. "
+                       "`--quick` is the CI-sized profile.")
+    from .bench.suite import add_arguments as _bench_arguments
+
+    _bench_arguments(b)
+    bsub = b.add_subparsers(dest="bench_cmd")
+    q = bsub.add_parser("query", help="query/sdf over Zenoh vs in-process: throughput, latency, ratio")
+    q.add_argument("--sizes", type=int, nargs="+", default=[1_000, 10_000, 100_000])
+    q.add_argument("--repeats", type=int, default=20)
+    q.add_argument("--preset", default="auto", choices=["auto", "paper", "cpu"], help="network of this preset")
+    q.add_argument("--gradient", default="no", choices=["no", "yes", "both"])
+    q.add_argument("--threads", type=int, help="torch threads in both the service and in-process")
+    q.add_argument("--out", help="folder for the JSON results")
+    q.set_defaults(fn=_bench_query)
+    b.set_defaults(fn=_bench)
+
+    args = p.parse_args(argv)
+    logging.basicConfig(level=args.log_level, format="%(asctime)s %(name)s %(levelname)s %(message)s")
+    args.fn(args)
+
+
+if __name__ == "__main__":
+    main()

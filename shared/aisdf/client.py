@@ -1,0 +1,105 @@
+"""The planner's client: numpy points in, numpy distances, gradients and costs out.
+
+    from aisdf.client import SdfClient
+    with SdfClient(namespace="aisdf", connect=["tcp/10.0.0.5:7447"]) as c:
+        r = c.query(points_W, gradient=True, collision_epsilon=0.3)
+        r.sdf, r.gradient, r.collision, r.map_version
+
+Protocol errors come back as :class:`aisdf.protocol.ProtocolError` with ``.code``
+(``bad_request``, ``too_large``, ``no_map``, ``internal``).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from . import keys, protocol, transport
+from .config import ZenohOptions
+from .surfel_types import Surfels
+
+ProtocolError = protocol.ProtocolError
+
+
+class SdfClient:
+    """Talks to a query service (and the mapper's latest-value keys) over Zenoh."""
+
+    def __init__(
+        self,
+        namespace: str = keys.DEFAULT_NAMESPACE,
+        zenoh: ZenohOptions | None = None,
+        connect: list[str] | None = None,
+        timeout: float = 10.0,
+        max_batch: int | None = None,
+    ):
+        opts = zenoh or ZenohOptions()
+        if connect:
+            opts = opts.model_copy(update={"connect": list(connect)})
+        self.namespace = keys.validate_namespace(namespace)
+        self.timeout = timeout
+        self.max_batch = max_batch
+        self._session = transport.open_session(opts)
+
+    def close(self) -> None:
+        if self._session is not None:
+            self._session.close()
+            self._session = None
+
+    def __enter__(self) -> "SdfClient":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def _key(self, name: str) -> str:
+        return keys.key(self.namespace, name)
+
+    def query(
+        self,
+        points_W: np.ndarray,
+        gradient: bool = False,
+        collision_epsilon: float | None = None,
+        source: str = "fused",
+    ) -> protocol.SdfReply:
+        """Signed distances (and optionally gradients and CHOMP costs) of (N, 3) points.
+
+        With ``max_batch`` set, larger inputs are split into several requests and the
+        replies concatenated (map_version is the smallest one seen)."""
+        pts = np.asarray(points_W)
+        if pts.ndim != 2 or pts.shape[1] != 3:
+            raise ValueError(f"points must be (N, 3), got {pts.shape}")
+        if pts.dtype != np.float64:
+            pts = pts.astype(np.float32)
+        step = self.max_batch or max(len(pts), 1)
+        parts = []
+        for i in range(0, max(len(pts), 1), step):
+            req = protocol.SdfRequest(pts[i:i + step], gradient, collision_epsilon, source)
+            parts.append(protocol.SdfReply.from_msg(transport.query(self._session, self._key(keys.QUERY_SDF),
+                                                                    req.to_msg(), self.timeout)))
+        if len(parts) == 1:
+            return parts[0]
+        cat = lambda name: None if getattr(parts[0], name) is None else np.concatenate([getattr(p, name) for p in parts])  # noqa: E731
+        return protocol.SdfReply(min(p.map_version for p in parts), cat("sdf"), cat("gradient"), cat("collision"))
+
+    def sdf(self, points_W: np.ndarray, source: str = "fused") -> np.ndarray:
+        return self.query(points_W, source=source).sdf
+
+    def collision_cost(self, points_W: np.ndarray, epsilon: float) -> np.ndarray:
+        return self.query(points_W, collision_epsilon=epsilon).collision
+
+    def mesh(self, resolution: float | None = None, timeout: float = 60.0) -> protocol.MeshReply:
+        msg = transport.query(self._session, self._key(keys.QUERY_MESH), protocol.MeshRequest(resolution).to_msg(),
+                              timeout)
+        return protocol.MeshReply.from_msg(msg)
+
+    def surfel_map(self, timeout: float = 2.0) -> protocol.SurfelMap | None:
+        """Latest explicit planar map (None if no mapper answers)."""
+        msg = transport.get_latest(self._session, self._key(keys.MAP_SURFELS), timeout)
+        return None if msg is None else protocol.SurfelMap.from_msg(msg)
+
+    def surfels(self, timeout: float = 2.0) -> Surfels | None:
+        m = self.surfel_map(timeout)
+        return None if m is None else Surfels.from_protocol_dict(m.surfels)
+
+    def weights(self, timeout: float = 2.0) -> protocol.WeightSnapshot | None:
+        msg = transport.get_latest(self._session, self._key(keys.MAP_WEIGHTS), timeout)
+        return None if msg is None else protocol.WeightSnapshot.from_msg(msg)

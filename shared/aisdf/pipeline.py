@@ -1,0 +1,162 @@
+"""The mapper's algorithm in one object, driven in-process by the mapper service, the
+benchmark and the tests alike: per keyframe, the Atlanta frame and surfels (when on),
+then continual training, and the map as protocol messages. No Zenoh, no files.
+
+    pipe = MappingPipeline.from_settings("cpu", atlanta=True)
+    pipe.add_keyframe(keyframe)      # protocol.Keyframe or mapping.Frame
+    pipe.step()
+    pipe.weight_snapshot(version), pipe.surfel_map(version)
+"""
+
+from __future__ import annotations
+
+import time
+from collections import defaultdict
+from typing import Any
+
+import numpy as np
+
+from . import protocol
+from .mapping.frames import Frame
+from .mapping.presets import training_config
+from .mapping.trainer import Trainer
+from .surfel_types import Surfels
+
+MIN_VALID_PIXELS = 64
+
+
+def frame_from_keyframe(kf: protocol.Keyframe) -> Frame:
+    return Frame(kf.frame_id, kf.stamp, kf.depth_m(), kf.K, kf.T_WC)
+
+
+class MappingPipeline:
+    def __init__(self, trainer: Trainer, atlanta: bool = True, atlanta_state: dict | None = None):
+        self.trainer = trainer
+        self.atlanta_on = atlanta
+        self.structure = None
+        if atlanta:
+            from .structure import Structure
+
+            self.structure = Structure(seed=trainer.cfg.seed)
+            if atlanta_state:
+                self.structure.load_state_dict(atlanta_state)
+        self._timings: dict[str, list[float]] = defaultdict(list)
+        self._pending_timings: dict[str, float] = {}
+        self._bounds: np.ndarray | None = None
+        self.last_ids: set[int] = set()
+
+    @classmethod
+    def from_settings(cls, preset: str = "auto", training: dict[str, Any] | None = None, atlanta: bool = True,
+                      surfel_mask: bool = True, surfel_loss: bool = True) -> "MappingPipeline":
+        """Preset + overrides; the Table II switches only matter with ``atlanta`` on."""
+        overrides = dict(training or {})
+        overrides.setdefault("surfel_mask", bool(atlanta and surfel_mask))
+        overrides.setdefault("surfel_loss", bool(atlanta and surfel_loss))
+        return cls(Trainer(training_config(preset, **overrides)), atlanta=atlanta)
+
+    def describe(self) -> str:
+        c = self.trainer.cfg
+        return (f"preset {c.preset}, width {c.network.width}, device {self.trainer.device}, "
+                f"atlanta {'on' if self.atlanta_on else 'off'}, surfel mask {c.surfel_mask}, surfel loss {c.surfel_loss}")
+
+    # ------------------------------------------------------------------ keyframes
+
+    @property
+    def steps(self) -> int:
+        return self.trainer.steps
+
+    @property
+    def n_keyframes(self) -> int:
+        return self.trainer.n_keyframes
+
+    def add_keyframe(self, kf: protocol.Keyframe | Frame) -> None:
+        """Add a keyframe. Raises ValueError (and changes nothing) for one that cannot be
+        used: a duplicate frame_id, too few valid depth pixels."""
+        frame = frame_from_keyframe(kf) if isinstance(kf, protocol.Keyframe) else kf
+        depth = frame.depth
+        valid = np.isfinite(depth) & (depth > 0) & (depth <= self.trainer.cfg.max_depth)
+        if int(valid.sum()) < MIN_VALID_PIXELS:
+            raise ValueError(f"only {int(valid.sum())} valid depth pixels (need {MIN_VALID_PIXELS})")
+        if frame.frame_id in {f.frame_id for f in self.trainer.keyframes}:
+            raise ValueError(f"frame_id {frame.frame_id} is already in the map")
+        if self.structure is not None:
+            t = self.structure.process(frame)
+            for k, v in t.items():
+                self._pending_timings[k] = self._pending_timings.get(k, 0.0) + v
+                self._timings[k].append(v)
+        self.trainer.add_keyframe(frame)
+        self._grow_bounds(frame)
+
+    def _grow_bounds(self, frame: Frame) -> None:
+        from .geometry import backproject, transform
+
+        d = frame.depth[::4, ::4]
+        K = frame.K.copy()
+        K[:2] /= 4
+        pts = backproject(d, K).reshape(-1, 3)
+        pts = transform(frame.T_WC, pts[np.isfinite(pts[:, 0])])
+        pts = np.concatenate([pts, frame.T_WC[None, :3, 3]])
+        lo, hi = pts.min(0), pts.max(0)
+        if self._bounds is None:
+            self._bounds = np.stack([lo, hi])
+        else:
+            self._bounds = np.stack([np.minimum(self._bounds[0], lo), np.maximum(self._bounds[1], hi)])
+
+    # ------------------------------------------------------------------ training
+
+    def step(self) -> dict:
+        extra, self._pending_timings = self._pending_timings, {}
+        t = time.perf_counter()
+        info = self.trainer.step(extra_timings_ms=extra)
+        info.setdefault("timings_ms", {})
+        for k, v in info["timings_ms"].items():
+            self._timings[k].append(v)
+        self._timings["step_wall"].append(1e3 * (time.perf_counter() - t))
+        for v in self._timings.values():
+            del v[:-200]  # keep recent history only
+        return info
+
+    def stats(self) -> dict:
+        """Mean per-module timings in ms over recent steps/keyframes (the paper's Table III)."""
+        out = {k: round(float(np.mean(v)), 3) for k, v in self._timings.items() if v}
+        out["dropped_keyframes"] = self.trainer.dropped_keyframes
+        if self.structure is not None:
+            out.update(self.structure.stats())
+        return out
+
+    # ------------------------------------------------------------------ outputs
+
+    def weight_snapshot(self, version: int) -> protocol.WeightSnapshot:
+        model = dict(self.trainer.model_spec())
+        if self._bounds is not None:
+            model["bounds"] = self._bounds.tolist()
+        return protocol.WeightSnapshot(version, self.steps, time.time(), model, self.trainer.state_numpy())
+
+    def surfels(self) -> Surfels | None:
+        return None if self.structure is None else self.structure.global_surfels()
+
+    def surfel_map(self, version: int) -> protocol.SurfelMap | None:
+        if self.structure is None:
+            return None
+        frame = self.structure.atlanta_frame()
+        if frame is None:
+            return None
+        s = self.structure.global_surfels()
+        return protocol.SurfelMap(version, time.time(), frame.vertical, frame.horizontal, s.to_protocol_dict())
+
+    def sdf(self, points: np.ndarray) -> np.ndarray:
+        return self.trainer.sdf(points)
+
+    # ------------------------------------------------------------------ checkpoints
+
+    def checkpoint(self) -> dict:
+        return {"trainer": self.trainer.checkpoint(), "atlanta": self.atlanta_on,
+                "structure": None if self.structure is None else self.structure.state_dict(),
+                "bounds": None if self._bounds is None else self._bounds.tolist()}
+
+    @classmethod
+    def restore(cls, d: dict) -> "MappingPipeline":
+        p = cls(Trainer.from_checkpoint(d["trainer"]), atlanta=d["atlanta"], atlanta_state=d.get("structure"))
+        if d.get("bounds") is not None:
+            p._bounds = np.asarray(d["bounds"])
+        return p

@@ -1,0 +1,166 @@
+"""End to end: the real services as separate processes over real Zenoh on loopback
+(explicit endpoints on unusual ports, multicast scouting off).
+
+The clients here are the stranger's client of ``stranger_client.py`` (written from
+protocol.md alone) and the project's own demo."""
+
+import json
+import subprocess
+import sys
+import time
+
+import msgpack
+import numpy as np
+import pytest
+import torch
+
+import stranger_client as sc
+from aisdf import protocol
+from aisdf.network import NetworkConfig, SDFNetwork, model_spec, state_to_numpy
+from aisdf.stack import Stack, wait_for
+
+pytestmark = pytest.mark.e2e
+NS = "aisdf/e2e"
+K = np.array([[120.0, 0, 79.5], [0, 120.0, 59.5], [0, 0, 1]])
+
+
+def snapshot_payload(version=1):
+    torch.manual_seed(0)
+    net = SDFNetwork(NetworkConfig(width=32, n_layers=2, skip_layer=None))
+    spec = model_spec(net)
+    spec["bounds"] = [[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]]
+    return protocol.pack(protocol.WeightSnapshot(version, 0, 0.0, spec, state_to_numpy(net)).to_msg()), net
+
+
+def good_request():
+    return {"v": 1, "points": sc.arr(np.zeros((4, 3)), "<f4")}
+
+
+MALFORMED = [
+    b"",
+    b"\xc1not msgpack",
+    msgpack.packb([1, 2, 3]),
+    msgpack.packb({"points": sc.arr(np.zeros((2, 3)), "<f4")}),  # no version
+    msgpack.packb({"v": 99, "points": sc.arr(np.zeros((2, 3)), "<f4")}),
+    msgpack.packb({"v": 1}),
+    msgpack.packb({"v": 1, "points": "lots"}),
+    msgpack.packb({"v": 1, "points": {"dtype": "<f4", "shape": [2, 3], "data": b"short"}}),
+    msgpack.packb({"v": 1, "points": {"dtype": ">f4", "shape": [1, 3], "data": bytes(12)}}),
+    msgpack.packb({"v": 1, "points": {"dtype": "<f4", "shape": [2, 2], "data": bytes(16)}}),
+    msgpack.packb({"v": 1, "points": {"dtype": "<u2", "shape": [1, 3], "data": bytes(6)}}),
+    msgpack.packb({"v": 1, "points": sc.arr([[np.inf, 0, 0]], "<f4")}),
+    msgpack.packb({"v": 1, "points": sc.arr(np.zeros((1, 3)), "<f4"), "gradient": "yes"}),
+    msgpack.packb({"v": 1, "points": sc.arr(np.zeros((1, 3)), "<f4"), "source": "oracle"}),
+    msgpack.packb({"v": 1, "points": sc.arr(np.zeros((1, 3)), "<f4"), "collision_epsilon": 0}),
+    msgpack.packb({"v": 1, "points": {"dtype": "<f4", "shape": [5000, 3], "data": bytes(60000)}}),  # too large
+]
+
+
+def test_query_service_errors_and_recovers():
+    with Stack(services=("query",), namespace=NS, args={"query": ["--max-points", "1000"]}) as st:
+        s = sc.open_session(st.endpoints)
+        try:
+            key = f"{NS}/query/sdf"
+            # Before any map: no_map.
+            status, msg = wait_for(lambda: (lambda r: r if r[0] != "timeout" else None)(sc.request(s, key, good_request(), 2.0)),
+                                   60, what="the query service")
+            assert status == "err" and msg["error"] == "no_map" and msg["v"] == 1
+            payload, net = snapshot_payload()
+            s.put(f"{NS}/map/weights", payload, encoding=sc.ENC)
+            wait_for(lambda: sc.request(s, key, good_request(), 2.0)[0] == "ok", 30, what="the map to load")
+            for bad in MALFORMED:
+                t = time.monotonic()
+                status, msg = sc.request(s, key, bad, 5.0)
+                assert time.monotonic() - t < 1.0
+                assert status == "err", bad
+                assert msg["v"] == 1 and msg["error"] in ("bad_request", "too_large") and msg["message"]
+                status, msg = sc.request(s, key, good_request(), 5.0)
+                assert status == "ok" and msg["map_version"] == 1
+            # The answers are the network's, with gradients and CHOMP costs.
+            pts = np.random.default_rng(0).uniform(-1, 1, (50, 3))
+            status, msg = sc.request(s, key, {"v": 1, "points": sc.arr(pts, "<f8"), "gradient": True,
+                                              "collision_epsilon": 2.0, "source": "implicit"})
+            assert status == "ok"
+            with torch.no_grad():
+                want = net(torch.tensor(pts, dtype=torch.float32)).reshape(-1).numpy()
+            np.testing.assert_allclose(sc.unarr(msg["sdf"]), want, atol=1e-5)
+            assert sc.unarr(msg["gradient"]).shape == (50, 3) and sc.unarr(msg["collision"]).shape == (50,)
+            # A newer snapshot is swapped in; an older one is ignored; garbage does not break it.
+            s.put(f"{NS}/map/weights", b"garbage", encoding=sc.ENC)
+            s.put(f"{NS}/map/weights", snapshot_payload(3)[0], encoding=sc.ENC)
+            wait_for(lambda: sc.request(s, key, good_request())[1].get("map_version") == 3, 30, what="version 3")
+            s.put(f"{NS}/map/weights", snapshot_payload(2)[0], encoding=sc.ENC)
+            time.sleep(1.0)
+            assert sc.request(s, key, good_request())[1]["map_version"] == 3
+            status, msg = sc.request(s, f"{NS}/query/mesh", {"v": 1, "resolution": -1})
+            assert status == "err" and msg["error"] == "bad_request"
+            assert st.alive("query")
+        finally:
+            s.close()
+
+
+def rays_points(room, poses, K, H, W, n, rng):
+    """iSDF's evaluation points: random valid pixels, one point uniform in [0.1, D] per ray."""
+    out = []
+    for T in poses:
+        d = room.render(T, K, H, W)
+        v, u = np.nonzero(d > 0)
+        i = rng.choice(len(v), n // len(poses))
+        z = d[v[i], u[i]]
+        s = rng.uniform(0.1, 1.0, len(i)) * z
+        s = np.maximum(s, 0.1)
+        p_C = np.stack([(u[i] - K[0, 2]) / K[0, 0] * s, (v[i] - K[1, 2]) / K[1, 1] * s, s], -1)
+        out.append(p_C @ T[:3, :3].T + T[:3, 3])
+    return np.concatenate(out)
+
+
+def test_stranger_client_maps_a_scene_the_project_never_saw():
+    room = sc.BoxRoom()
+    poses = room.poses(24)
+    H, W = 120, 160
+    with Stack(services=("query", "mapper"), namespace=NS, args={"mapper": ["--preset", "cpu"]}) as st:
+        s = sc.open_session(st.endpoints)
+        try:
+            wait_for(lambda: sc.request(s, f"{NS}/query/sdf", good_request(), 2.0)[0] == "err", 60,
+                     what="the query service")
+            time.sleep(2.0)  # the mapper's subscriber
+            bad = sc.keyframe_payload(999, 0.0, room.render(poses[0], K, H, W), K, np.diag([2.0, 2, 2, 1]))
+            s.put(f"{NS}/keyframes", bad, encoding=sc.ENC)
+            for i, T in enumerate(poses):
+                s.put(f"{NS}/keyframes", sc.keyframe_payload(i, i * 0.2, room.render(T, K, H, W), K, T, i % 2 == 0),
+                      encoding=sc.ENC)
+                time.sleep(0.2)
+            rng = np.random.default_rng(0)
+            pts = rays_points(room, poses, K, H, W, 4000, rng)
+            gt = room.sdf(pts)
+            untrained = float(np.mean(np.abs(gt)))  # what a network answering ~0 scores
+            errors = []
+
+            def good_enough():
+                status, msg = sc.query_sdf(s, NS, pts, timeout=20.0)
+                if status != "ok":
+                    return False
+                errors.append(float(np.mean(np.abs(sc.unarr(msg["sdf"]) - gt))))
+                return errors[-1] < 0.08
+
+            try:
+                wait_for(good_enough, 240, period=5.0, what="the SDF error to fall below 8 cm")
+            finally:
+                print(f"untrained {untrained:.3f} m; errors over time {np.round(errors, 3).tolist()}")
+            assert untrained > 0.4
+            status, info = sc.request(s, f"{NS}/info/mapper", {"v": 1})
+            assert status == "ok" and info["rejected"] == 1 and info["accepted"] == len(poses)
+        finally:
+            s.close()
+
+
+def test_demo_maps_the_synthetic_building(tmp_path):
+    """The README's demo, shortened: three processes, live progress, artefacts, error bound."""
+    r = subprocess.run([sys.executable, "-m", "aisdf.cli", "demo", "--duration", "75", "--out", str(tmp_path)],
+                       capture_output=True, text=True, timeout=400)
+    assert r.returncode == 0, r.stdout[-3000:] + r.stderr[-3000:]
+    summary = json.loads((tmp_path / "summary.json").read_text())
+    assert summary["sdf_error_cm"] < 20.0, summary
+    assert summary["history"][-1]["keyframes"] > 5 and summary["history"][-1]["steps"] > 50
+    assert (tmp_path / "demo.rrd").stat().st_size > 10_000
+    assert (tmp_path / "mesh.ply").exists()
