@@ -1,0 +1,98 @@
+"""Training configuration. Every default is iSDF's number (isdf-reference.md) or the
+AiSDF paper's (Sec. III-D/E); named presets live in ``presets.py``.
+"""
+
+from __future__ import annotations
+
+from typing import Literal
+
+from pydantic import Field
+
+from ..config import Model
+from ..network import NetworkConfig
+
+
+class TrainingConfig(Model):
+    """Continual SDF training (iSDF, plus AiSDF's surfel switches)."""
+
+    preset: str = Field("paper", description="label: the preset these values started from (training_config sets it)")
+    network: NetworkConfig = Field(default_factory=NetworkConfig)
+    device: str = Field("auto", description='"auto" = cuda when available else cpu; or "cpu", "cuda", "cuda:1"')
+    seed: int = Field(0, description="seeds the network init and the sampling generator")
+    torch_threads: int | None = Field(None, ge=1, description="torch.set_num_threads at Trainer start; None = leave")
+
+    # Input.
+    max_depth: float = Field(12.0, gt=0, description="depth above this (m) is invalid, as 0 and non-finite are")
+
+    # Window (isdf-reference.md, "Sampling").
+    window_size: int = Field(5, ge=1, description="frames per step: the newest two keyframes + loss-weighted replay")
+    max_keyframes: int = Field(
+        200, ge=2, description="memory bound; beyond it the lowest-loss keyframe (not the newest two) is dropped"
+    )
+
+    # Ray samples.
+    n_rays: int = Field(200, ge=1, description="random valid pixels per frame")
+    n_gaussian: int = Field(
+        7, ge=0, description="samples at D + N(0, gaussian_std) per ray (iSDF: 8 near-surface samples, one of "
+        "them exactly at D, so 1 + 7 + 19 = 27 per ray)"
+    )
+    gaussian_std: float = Field(0.1, gt=0, description="std (m) of the samples around the measured depth")
+    n_stratified: int = Field(19, ge=0, description="stratified samples in [min_depth, D + depth_margin] per ray")
+    min_depth: float = Field(0.07, ge=0, description="near end (m, camera z) of the sampled depth range")
+    depth_margin: float = Field(0.1, ge=0, description="far end of the range is D + this (m)")
+
+    # Bounds.
+    bound_method: Literal["auto", "cdist", "kdtree"] = Field(
+        "auto", description="nearest surface point search: torch.cdist in chunks, or scipy cKDTree; auto = kdtree "
+        "on cpu, cdist on cuda"
+    )
+    bound_chunk: int = Field(2048, ge=1, description="query points per torch.cdist chunk")
+
+    # iSDF loss.
+    trunc_distance: float = Field(0.2937, gt=0, description="bound above this (m) = free space, else truncation band")
+    free_space_beta: float = Field(5.0, description="free-space term max(relu(f - b), exp(-beta f) - 1)")
+    trunc_weight: float = Field(5.383, description="band term |f - b| times this")
+    eik_weight: float = Field(0.268, description="weight of |‖∇f‖ - 1|")
+    eik_apply_dist: float = Field(0.1, description="Eikonal term only where bound >= this (m)")
+    grad_weight: float = Field(0.018, description="weight of 1 - cos(∇f, g)")
+
+    # AiSDF (paper Sec. III-D/E; Table II's two switches). Both off = exactly iSDF. Either on: a frame
+    # that has surfels also gets samples_per_ray points uniform on each surfel ("surfel points"), and the
+    # bound/gradient of its ray samples use the nearest of the surface AND surfel points (Eqs. 1-2).
+    surfel_mask: bool = Field(
+        False, description="rays only from non-surfel pixels of frames that have surfels (and, with "
+        "surfels_replace_rays, one ray fewer per surfel)"
+    )
+    surfel_loss: bool = Field(
+        False, description="surfel points get |f| + 0.4(1 - cos(∇f, v)) + 0.2|‖∇f‖ - 1|; off = surfel points "
+        "join iSDF's loss with bound 0 and gradient target v (band term 5.383|f| and 0.018(1 - cos))"
+    )
+    surfels_replace_rays: bool = Field(
+        True, description="with surfel_mask: a frame with S surfels gets n_rays - S rays, so one surfel takes the "
+        "place of one ray and the number of samples stays the same (paper: 'without increasing the total')"
+    )
+    surfel_sdf_weight: float = Field(1.0, description="surfel loss: weight of |f|")
+    surfel_grad_weight: float = Field(0.4, description="surfel loss: weight of 1 - cos(∇f, v)")
+    surfel_eik_weight: float = Field(0.2, description="surfel loss: weight of |‖∇f‖ - 1|")
+
+    # Optimiser (AdamW, no schedule).
+    lr: float = Field(1.3e-3, gt=0, description="AdamW learning rate")
+    weight_decay: float = Field(1.2e-2, ge=0, description="AdamW weight decay")
+
+    # iSDF's offline schedule (for "equal iterations" comparisons).
+    steps_first_frame: int = Field(200, ge=0, description="steps after the first keyframe")
+    steps_per_keyframe: int = Field(60, ge=0, description="steps after each later keyframe")
+
+    @property
+    def samples_per_ray(self) -> int:
+        """1 surface sample + gaussian + stratified (iSDF: 27); also the points per surfel."""
+        return 1 + self.n_gaussian + self.n_stratified
+
+    def steps_for_keyframe(self, index: int) -> int:
+        """iSDF's schedule: steps to run after adding keyframe number ``index`` (0-based)."""
+        return self.steps_first_frame if index == 0 else self.steps_per_keyframe
+
+    @property
+    def uses_surfels(self) -> bool:
+        """Whether surfel points are sampled (either AiSDF switch on)."""
+        return self.surfel_mask or self.surfel_loss

@@ -1,0 +1,130 @@
+"""Keyframes and the loss-weighted replay window (isdf-reference.md, "Sampling").
+
+The frontend sends only keyframes, so iSDF's "current frame" and "latest keyframe" are
+the newest two keyframes here. Every step trains on those two plus ``window_size - 2``
+older keyframes drawn without replacement with probability proportional to their loss
+estimate. A keyframe's estimate is the mean per-point loss of its samples the last time
+it was in a window (overwritten each time, as iSDF does); a keyframe not yet trained
+on has the mean estimate of the others (1.0 when there is none).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from .. import geometry
+from ..surfel_types import FIELDS as SURFEL_FIELDS
+from ..surfel_types import Surfels
+
+
+@dataclass
+class Frame:
+    """A posed depth keyframe. depth (H, W) float32 metres, 0 = invalid; K (3, 3); T_WC (4, 4)
+    camera-to-world; surfels / surfel_mask (H, W) bool are filled by the Atlanta module."""
+
+    frame_id: int
+    stamp: float
+    depth: np.ndarray
+    K: np.ndarray
+    T_WC: np.ndarray
+    surfels: Surfels | None = None
+    surfel_mask: np.ndarray | None = None
+
+    def to_dict(self) -> dict:
+        """Plain types and arrays (for checkpoints)."""
+        return {
+            "frame_id": int(self.frame_id), "stamp": float(self.stamp),
+            "depth": np.asarray(self.depth, np.float32), "K": np.asarray(self.K, np.float64),
+            "T_WC": np.asarray(self.T_WC, np.float64),
+            "surfels": None if self.surfels is None else {f: getattr(self.surfels, f) for f in SURFEL_FIELDS},
+            "surfel_mask": None if self.surfel_mask is None else np.asarray(self.surfel_mask, bool),
+        }
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "Frame":
+        s = d.get("surfels")
+        m = d.get("surfel_mask")
+        return cls(
+            int(d["frame_id"]), float(d["stamp"]), np.asarray(d["depth"], np.float32), np.asarray(d["K"], np.float64),
+            np.asarray(d["T_WC"], np.float64), None if s is None else Surfels(**s),
+            None if m is None else np.asarray(m, bool),
+        )
+
+
+def clean_depth(depth: np.ndarray, max_depth: float) -> np.ndarray:
+    """float32 copy with 0 wherever the depth is non-finite, <= 0 or > max_depth."""
+    d = np.array(depth, dtype=np.float32)
+    d[~(np.isfinite(d) & (d > 0) & (d <= max_depth))] = 0.0
+    return d
+
+
+@dataclass
+class Keyframe:
+    """A stored frame with what sampling needs: cleaned depth, world normals (float16, NaN = none)."""
+
+    frame: Frame
+    depth: np.ndarray
+    normals_W: np.ndarray
+    loss: float | None = None
+
+    @classmethod
+    def make(cls, frame: Frame, max_depth: float) -> "Keyframe":
+        depth = clean_depth(frame.depth, max_depth)
+        if frame.surfel_mask is not None and frame.surfel_mask.shape != depth.shape:
+            raise ValueError(f"surfel_mask shape {frame.surfel_mask.shape} != depth shape {depth.shape}")
+        n_C = geometry.normals_from_depth(depth, frame.K)
+        n_W = geometry.rotate(np.asarray(frame.T_WC, np.float64), n_C).astype(np.float16)
+        return cls(frame, depth, n_W)
+
+
+class KeyframeStore:
+    """Keyframes in arrival order, their loss estimates, the replay window and the memory bound."""
+
+    def __init__(self, window_size: int = 5, max_keyframes: int = 200, max_depth: float = 12.0):
+        self.window_size = window_size
+        self.max_keyframes = max_keyframes
+        self.max_depth = max_depth
+        self.keyframes: list[Keyframe] = []
+        self.dropped = 0
+
+    def __len__(self) -> int:
+        return len(self.keyframes)
+
+    def add(self, frame: Frame) -> list[int]:
+        """Store a frame; returns the frame_ids dropped to respect ``max_keyframes``."""
+        self.keyframes.append(Keyframe.make(frame, self.max_depth))
+        dropped = []
+        while len(self.keyframes) > self.max_keyframes:
+            old = self.keyframes[:-2]
+            i = int(np.argmin([self._loss(k) for k in old]))
+            dropped.append(self.keyframes.pop(i).frame.frame_id)
+            self.dropped += 1
+        return dropped
+
+    def _loss(self, kf: Keyframe) -> float:
+        if kf.loss is not None:
+            return kf.loss
+        known = [k.loss for k in self.keyframes if k.loss is not None]
+        return float(np.mean(known)) if known else 1.0
+
+    def losses(self) -> np.ndarray:
+        return np.array([self._loss(k) for k in self.keyframes])
+
+    def window(self, rng: np.random.Generator) -> list[int]:
+        """Indices into ``keyframes``: [newest, second newest, replayed...] (fewer when fewer are stored)."""
+        n = len(self.keyframes)
+        newest = list(range(n - 1, max(n - 3, -1), -1))[: self.window_size]
+        n_replay = min(self.window_size - len(newest), n - len(newest))
+        if n_replay <= 0:
+            return newest
+        w = np.maximum(self.losses()[: n - 2], 0.0) + 1e-12
+        replay = rng.choice(n - 2, size=n_replay, replace=False, p=w / w.sum())
+        return newest + [int(i) for i in replay]
+
+    def update_losses(self, indices: list[int], losses: np.ndarray) -> None:
+        """Overwrite the loss estimate of each keyframe in the window (NaN = frame had no samples)."""
+        for i, v in zip(indices, np.asarray(losses, dtype=np.float64)):
+            if np.isfinite(v):
+                self.keyframes[i].loss = float(v)
