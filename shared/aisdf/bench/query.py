@@ -38,7 +38,7 @@ def _time(fn, repeats: int) -> list[float]:
 
 
 def run(sizes=(1_000, 10_000, 100_000), repeats: int = 20, preset: str = "auto", gradient: bool = False,
-        out: str | Path | None = None, threads: int | None = None) -> list[dict]:
+        out: str | Path | None = None, threads: int | None = None, log_dir: str | None = None) -> list[dict]:
     from aisdf_query.engine import QueryEngine
 
     if threads:
@@ -47,7 +47,7 @@ def run(sizes=(1_000, 10_000, 100_000), repeats: int = 20, preset: str = "auto",
     rng = np.random.default_rng(0)
     rows = []
     qargs = ["--set", f"torch_threads={threads}"] if threads else []
-    with Stack(services=("query",), namespace="aisdf/bench", args={"query": qargs}) as stack:
+    with Stack(services=("query",), namespace="aisdf/bench", args={"query": qargs}, log_dir=log_dir) as stack:
         with SdfClient("aisdf/bench", zenoh=stack.client_zenoh, timeout=60.0) as client:
             key = keys.key("aisdf/bench", keys.MAP_WEIGHTS)
 

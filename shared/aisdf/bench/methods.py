@@ -1,0 +1,307 @@
+"""The methods compared, and the replay that feeds them the same stream.
+
+A *model* is one map built from the stream (a voxel map, or one trained network); a
+*method* is a column of Table I: a model read one way. AiSDF "w/o" and "w." explicit
+map are the same trained network, read alone or fused with its surfels
+(``aisdf.fusion.fuse``, as the query service does).
+
+Two modes (``run_stream``):
+
+* ``iterations`` (the paper's): every model sees every frame. The voxel map integrates
+  every frame, as Voxblox does; a network gets the frames the service's keyframe
+  selector (``aisdf_frontend.keyframes``) picks, each followed by iSDF's schedule
+  (200 steps after the first keyframe, 60 after each later one, times the profile's
+  ``schedule_scale``).
+* ``realtime`` (iSDF's replay): each model has its own compute clock; the frame it gets
+  next is the newest one whose time stamp the clock has passed, so frames that arrive
+  while it computes are skipped. Networks train continuously between frames; the voxel
+  map integrates the frames it gets. Keyframe selection runs on the frames a model sees.
+  The clock is ``ComputeClock`` (wall time of the model's own work, times ``slowdown``;
+  tests pass a fake timer).
+"""
+
+from __future__ import annotations
+
+import time
+from collections import defaultdict
+from collections.abc import Callable, Sequence
+from contextlib import contextmanager
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..fusion import DEFAULT_FUSE_RADIUS, fuse
+from ..mapping.frames import Frame
+
+
+@dataclass(frozen=True)
+class ModelSpec:
+    kind: str  # "voxel" | "neural"
+    atlanta: bool = False
+    surfel_mask: bool = False
+    surfel_loss: bool = False
+
+
+MODELS: dict[str, ModelSpec] = {
+    "voxblox": ModelSpec("voxel"),
+    "isdf": ModelSpec("neural"),
+    "aisdf": ModelSpec("neural", True, True, True),
+    "aisdf-mask": ModelSpec("neural", True, True, False),  # Table II: surfel mask only
+    "aisdf-loss": ModelSpec("neural", True, False, True),  # Table II: surfel loss only
+}
+
+# Table I columns: method -> (model, view).
+METHODS: dict[str, tuple[str, str]] = {
+    "voxblox": ("voxblox", "voxel"),
+    "isdf": ("isdf", "implicit"),
+    "aisdf": ("aisdf", "implicit"),
+    "aisdf+explicit": ("aisdf", "fused"),
+}
+LABELS: dict[str, str] = {
+    "voxblox": "Voxblox-like TSDF/ESDF 5.5 cm", "isdf": "iSDF", "aisdf": "AiSDF (w/o explicit map)",
+    "aisdf+explicit": "AiSDF (w. explicit map)",
+}
+# Table II rows: (surfel mask, surfel loss) -> model; both off is iSDF, both on AiSDF.
+ABLATION: list[tuple[tuple[bool, bool], str]] = [
+    ((False, False), "isdf"), ((True, False), "aisdf-mask"), ((False, True), "aisdf-loss"), ((True, True), "aisdf"),
+]
+
+
+def atlanta_available() -> str | None:
+    """None when the Atlanta module imports, else why not."""
+    try:
+        from .. import structure  # noqa: F401
+    except Exception as e:  # noqa: BLE001 - any import failure makes the AiSDF models unavailable
+        return f"{type(e).__name__}: {e}"
+    return None
+
+
+class ComputeClock:
+    """Seconds of a model's own compute: the sum of the measured blocks, times ``slowdown``."""
+
+    def __init__(self, timer: Callable[[], float] = time.perf_counter, slowdown: float = 1.0):
+        self.timer, self.slowdown, self.t = timer, float(slowdown), 0.0
+
+    @contextmanager
+    def measure(self):
+        t0 = self.timer()
+        try:
+            yield
+        finally:
+            self.t += max(self.timer() - t0, 1e-9) * self.slowdown
+
+
+class Runner:
+    """One model fed by the replay: ``see(frame, train)``, ``step()``, ``query(view, points)``."""
+
+    name: str
+
+    def __init__(self, name: str, clock: ComputeClock):
+        self.name, self.clock = name, clock
+        self.frames_seen = self.keyframes = self.steps = self.rejected = 0
+        self.seen_ids: list[int] = []
+
+    def see(self, frame: dict, train: bool) -> None:
+        raise NotImplementedError
+
+    def step(self) -> bool:
+        return False
+
+    def prepare(self) -> None:
+        """Make the map queryable (e.g. build the ESDF); not counted as compute."""
+
+    def query(self, view: str, points: np.ndarray, grad: bool = True) -> tuple[np.ndarray, np.ndarray | None]:
+        raise NotImplementedError
+
+    def summary(self, up: np.ndarray | None = None) -> dict:
+        return {"frames_seen": self.frames_seen, "keyframes": self.keyframes, "steps": self.steps,
+                "rejected_keyframes": self.rejected, "compute_s": round(self.clock.t, 3)}
+
+
+class VoxelRunner(Runner):
+    """The Voxblox-like TSDF -> ESDF map (``aisdf.bench.voxel.VoxelEsdf``), every frame it sees."""
+
+    def __init__(self, name, clock, bounds: np.ndarray, max_depth: float, voxel_size: float = 0.055):
+        from .voxel import VoxelEsdf
+
+        super().__init__(name, clock)
+        self.map = VoxelEsdf(voxel_size=voxel_size, max_depth=max_depth, bounds=bounds)
+        self._dirty = False
+
+    def see(self, frame, train):
+        with self.clock.measure():
+            self.map.integrate(frame["depth"], frame["K"], frame["T_WC"])
+        self.frames_seen += 1
+        self.seen_ids.append(frame["frame_id"])
+        self._dirty = True
+
+    def prepare(self):
+        if self._dirty:
+            self.map.finalize()
+            self._dirty = False
+
+    def query(self, view, points, grad=True):
+        self.prepare()
+        return self.map.sdf(points), (self.map.gradient(points) if grad else None)
+
+    def timings(self) -> dict:
+        s = self.map.timing_summary()
+        fin = self.map.timings["finalize_ms"]
+        return {"integrate": round(s["integrate_ms"], 3), "esdf": round(float(np.mean(fin)) if fin else 0.0, 3)}
+
+    def summary(self, up=None):
+        return {**super().summary(), "keyframes": None, "steps": None, "timings_ms": self.timings()}
+
+
+class NeuralRunner(Runner):
+    """``aisdf.pipeline.MappingPipeline`` with the service's keyframe selector in front."""
+
+    TRAINER_KEYS = ("sampling", "bound", "forward", "backward", "total")
+
+    def __init__(self, name, clock, spec: ModelSpec, preset: str, training: dict, keyframes: dict | None = None):
+        from aisdf_frontend.config import KeyframeConfig
+        from aisdf_frontend.keyframes import KeyframeSelector
+
+        from ..pipeline import MappingPipeline
+
+        super().__init__(name, clock)
+        self.spec = spec
+        self.pipe = MappingPipeline.from_settings(preset, training=training, atlanta=spec.atlanta,
+                                                  surfel_mask=spec.surfel_mask, surfel_loss=spec.surfel_loss)
+        self.selector = KeyframeSelector(KeyframeConfig(**(keyframes or {})))
+        self._ms: dict[str, list[float]] = defaultdict(list)  # the pipeline's own per-module timings
+        self._wall: dict[str, list[float]] = defaultdict(list)  # measured here: whole step / keyframe add
+        self.keyframe_ids: list[int] = []
+
+    def see(self, frame, train):
+        added = False
+        with self.clock.measure():
+            if self.selector.is_keyframe(frame["stamp"], frame["depth"], frame["K"], frame["T_WC"]):
+                t = time.perf_counter()
+                try:
+                    self.pipe.add_keyframe(Frame(frame["frame_id"], frame["stamp"], frame["depth"], frame["K"],
+                                                 frame["T_WC"]))
+                    added = True
+                    self._wall["keyframe_wall"].append(1e3 * (time.perf_counter() - t))
+                except ValueError:  # too few valid pixels: the service drops it too
+                    self.rejected += 1
+        self.frames_seen += 1
+        self.seen_ids.append(frame["frame_id"])
+        if added:
+            self.keyframes += 1
+            self.keyframe_ids.append(frame["frame_id"])
+            if train:
+                for _ in range(self.pipe.trainer.cfg.steps_for_keyframe(self.keyframes - 1)):
+                    self.step()
+
+    def step(self):
+        if self.pipe.n_keyframes == 0:
+            return False
+        t = time.perf_counter()
+        with self.clock.measure():
+            info = self.pipe.step()
+        self._wall["step_wall"].append(1e3 * (time.perf_counter() - t))
+        self.steps += 1
+        for k, v in info.get("timings_ms", {}).items():
+            self._ms[k].append(float(v))
+        return True
+
+    def timings(self) -> dict:
+        """Mean ms per module: trainer modules per step; others (Atlanta frame, surfels) per
+        keyframe; ``sum`` adds the module means as the paper's Table III does; ``step_wall``
+        and ``keyframe_wall``: measured around ``pipeline.step()`` / ``add_keyframe()``."""
+        out = {k: round(float(np.mean(v)), 3) for k, v in self._ms.items() if v and k != "total"}
+        out["sum"] = round(float(sum(out.values())), 3)
+        out.update({k: round(float(np.mean(v)), 3) for k, v in self._wall.items() if v})
+        return out
+
+    def surfels(self):
+        s = self.pipe.surfels()
+        return s if s is not None and len(s) else None
+
+    def query(self, view, points, grad=True):
+        p = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+        if grad:
+            f, g = self.pipe.trainer.sdf_grad(p)
+        else:
+            f, g = self.pipe.sdf(p), None
+        f = f.astype(np.float64)
+        g = None if g is None else g.astype(np.float64)
+        if view == "fused" and (s := self.surfels()) is not None:
+            from ..surfel_map import explicit_sdf
+
+            d_e, g_e, _ = explicit_sdf(p, s)
+            f, g, _ = fuse(f, g, d_e, g_e if grad else None, DEFAULT_FUSE_RADIUS)
+        return f, g
+
+    def estimated_up(self) -> np.ndarray | None:
+        """The Atlanta frame's vertical, when estimated (sign as the module gives it)."""
+        st = self.pipe.structure
+        frame = None if st is None else st.atlanta_frame()
+        return None if frame is None else np.asarray(frame.vertical, dtype=np.float64)
+
+    def summary(self, up: np.ndarray | None = None):
+        out = {**super().summary(), "timings_ms": self.timings(), "describe": self.pipe.describe()}
+        if self.spec.atlanta:
+            s = self.surfels()
+            out["surfels"] = 0 if s is None else len(s)
+            v = self.estimated_up()
+            out["estimated_up"] = None if v is None else v.round(4).tolist()
+            if v is not None and up is not None:  # axial angle to the scene's up
+                c = abs(float(v @ up)) / (np.linalg.norm(v) * np.linalg.norm(up))
+                out["up_error_deg"] = round(float(np.degrees(np.arccos(min(c, 1.0)))), 3)
+        return out
+
+
+def make_runner(model: str, scene, clock: ComputeClock, preset: str, training: dict,
+                keyframes: dict | None = None) -> Runner:
+    spec = MODELS[model]
+    if spec.kind == "voxel":
+        return VoxelRunner(model, clock, scene.bounds, scene.max_depth)
+    return NeuralRunner(model, clock, spec, preset, training, keyframes)
+
+
+def checkpoint_indices(n_frames: int, n_checkpoints: int) -> list[int]:
+    """Frame indices (sorted, unique, last = n - 1) at equal shares of the sequence."""
+    k = max(1, int(n_checkpoints))
+    return sorted({max(0, int(round(n_frames * (j + 1) / k)) - 1) for j in range(k)})
+
+
+def run_stream(frames, runners: Sequence[Runner], mode: str, checkpoints: Sequence[int],
+               on_checkpoint: Callable[[int, float, list[dict]], None], progress=None, every: int = 5) -> list[dict]:
+    """Replay ``frames`` (``len``, ``frame(i)``) through every runner in lockstep.
+
+    ``on_checkpoint(i, stream_time_s, seen)`` is called after frame ``i`` for every ``i`` in
+    ``checkpoints``, with every ``every``-th stream frame so far (the evaluation draws its
+    points from those). Returns that list at the end."""
+    if mode not in ("iterations", "realtime"):
+        raise ValueError(f"mode must be iterations or realtime, not {mode!r}")
+    n = len(frames)
+    cps = set(checkpoints)
+    seen: list[dict] = []
+    nxt = frames.frame(0)
+    t0 = nxt["stamp"]
+    dt = None
+    for i in range(n):
+        frame = nxt
+        nxt = frames.frame(i + 1) if i + 1 < n else None
+        if nxt is not None:
+            dt = nxt["stamp"] - frame["stamp"]
+        next_rel = (nxt["stamp"] if nxt is not None else frame["stamp"] + (dt or 1 / 30)) - t0
+        if i % every == 0:
+            seen.append({k: frame[k] for k in ("frame_id", "depth", "K", "T_WC")})
+        for r in runners:
+            if mode == "iterations":
+                r.see(frame, train=True)
+                continue
+            if r.clock.t >= next_rel:  # busy while this frame was the newest: skipped
+                continue
+            r.see(frame, train=False)
+            while r.clock.t < next_rel:
+                if not r.step():  # nothing to train (voxel map, or no keyframe yet): wait for the next frame
+                    r.clock.t = next_rel
+        if i in cps:
+            on_checkpoint(i, float(frame["stamp"] - t0), seen)
+        if progress is not None:
+            progress.update(1, {r.name: r.steps if r.steps else r.frames_seen for r in runners})
+    return seen

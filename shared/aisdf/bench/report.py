@@ -1,0 +1,183 @@
+"""Tables I-III as markdown and JSON, from the suite's results.
+
+``results`` (what ``suite.run`` returns and writes as results.json)::
+
+    {"mode": ..., "n_points": ..., "scenes": {scene: {
+        "ground_truth": label, "gt_kind": "exact" | "mesh" | "reference",
+        "runs": [  # one per seed
+            {"seed": s, "final": {method: metrics}, "ablation": {model: metrics},
+             "over_time": [{"frame": i, "t": s, "methods": {method: metrics}}],
+             "models": {model: summary (frames seen, keyframes, steps, compute, timings_ms)}}]}}}
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+
+from .methods import ABLATION, LABELS
+
+METRICS = ("sdf_error_cm", "collision_cost_error", "gradient_cosine_distance")
+SHORT = {"sdf_error_cm": "SDF (cm)", "collision_cost_error": "Collision", "gradient_cosine_distance": "Gradient"}
+DIGITS = {"sdf_error_cm": 3, "collision_cost_error": 4, "gradient_cosine_distance": 3}
+MODULES = {  # Table III columns: pipeline timing key -> label, in the paper's order
+    "atlanta": "AF estimation", "surfels": "Extract surfels", "sampling": "Sampling", "bound": "Compute bound",
+    "forward": "Forward", "backward": "Backward",
+}
+PAPER_TABLE3 = {"atlanta": 2, "surfels": 54, "sampling": 5, "bound": 7, "forward": 6, "backward": 14, "sum": 88}
+
+
+def _agg(values: list[dict]) -> dict:
+    """Mean and std over seeds of each metric (NaN-aware)."""
+    out = {}
+    for m in METRICS:
+        v = np.array([d.get(m, np.nan) for d in values], dtype=np.float64)
+        ok = v[np.isfinite(v)]
+        out[m] = float(ok.mean()) if len(ok) else float("nan")
+        out[f"{m}_std"] = float(ok.std()) if len(ok) > 1 else 0.0
+    out["seeds"] = len(values)
+    out["n_points"] = int(np.mean([d.get("n_points", 0) for d in values])) if values else 0
+    return out
+
+
+def _fmt(v, m: str) -> str:
+    return "n/a" if v is None or not math.isfinite(v) else f"{v:.{DIGITS[m]}f}"
+
+
+def _gt_short(s: dict) -> str:
+    return {"exact": "exact", "mesh": "mesh", "reference": "**reference, not truth**"}.get(s["gt_kind"], s["gt_kind"])
+
+
+def _header(results: dict) -> list[str]:
+    return [f"Mode: **{results['mode']}** ({results['mode_note']}). Profile: {results['profile']}. "
+            f"Points: up to {results['n_points']:,} along rays of every 5th frame seen (iSDF's protocol); "
+            f"seeds: {results['seeds']}. Lower is better; best per scene and metric in **bold**.", ""]
+
+
+def table1(results: dict) -> tuple[str, dict]:
+    methods = results["methods"]
+    data: dict = {"title": "Table I", "mode": results["mode"], "methods": methods, "scenes": {}}
+    lines = ["# Table I: SDF error (cm), collision cost error (epsilon 2 m), gradient cosine distance", ""]
+    lines += _header(results)
+    head = ["Scene", "Ground truth"] + [f"{LABELS.get(m, m)}: {SHORT[k]}" for m in methods for k in METRICS]
+    lines += ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    for scene, s in results["scenes"].items():
+        agg = {m: _agg([r["final"][m] for r in s["runs"] if m in r["final"]]) for m in methods}
+        data["scenes"][scene] = {"ground_truth": s["ground_truth"], "gt_kind": s["gt_kind"], "methods": agg}
+        best = {k: sorted(v for v in (agg[m][k] for m in methods) if math.isfinite(v)) for k in METRICS}
+        cells = []
+        for m in methods:
+            for k in METRICS:
+                c = _fmt(agg[m][k], k)
+                cells.append(f"**{c}**" if best[k] and agg[m][k] == best[k][0] and len(methods) > 1 else c)
+        name = f"{scene} ({_gt_short(s)})" if s["gt_kind"] == "reference" else scene
+        lines.append("| " + " | ".join([name, _gt_short(s)] + cells) + " |")
+    if results.get("unavailable"):
+        lines += ["", "Left out: " + "; ".join(f"{m} ({why})" for m, why in results["unavailable"].items())]
+    lines += ["", "Ground truth per scene:", ""]
+    lines += [f"- {scene}: {s['ground_truth']}" for scene, s in results["scenes"].items()]
+    lines += ["", "## Run details (seed 0)", "",
+              "| Scene | Model | Frames seen | Keyframes | Steps | Compute (s) | Surfels | Up error (deg) |",
+              "|---|---|---|---|---|---|---|---|"]
+    for scene, s in results["scenes"].items():
+        for model, r in s["runs"][0]["models"].items():
+            cells = ["-" if r.get(k) is None else r[k] for k in ("keyframes", "steps", "surfels", "up_error_deg")]
+            lines.append(f"| {scene} | {model} | {r['frames_seen']} / {s['frames']} | {cells[0]} | {cells[1]} | "
+                         f"{r['compute_s']:.1f} | {cells[2]} | {cells[3]} |")
+    return "\n".join(lines) + "\n", data
+
+
+def table2(results: dict) -> tuple[str, dict]:
+    lines = ["# Table II: ablation of Atlanta-aware sampling (surfel mask, surfel loss)", ""]
+    lines += _header(results)
+    data: dict = {"title": "Table II", "mode": results["mode"], "scenes": {}}
+    scenes = {k: v for k, v in results["scenes"].items() if any(r.get("ablation") for r in v["runs"])}
+    if not scenes:
+        return "\n".join(lines + ["No ablation was run (--ablation named no scene of this run)."]) + "\n", data
+    head = ["Surfel mask", "Surfel loss"] + [f"{sc}: {SHORT[k]}" for sc in scenes for k in METRICS]
+    lines += ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    for scene, s in scenes.items():
+        data["scenes"][scene] = {"ground_truth": s["ground_truth"], "rows": []}
+        for (mask, loss), model in ABLATION:
+            a = _agg([r["ablation"][model] for r in s["runs"] if model in r.get("ablation", {})])
+            data["scenes"][scene]["rows"].append({"surfel_mask": mask, "surfel_loss": loss, "model": model, **a})
+    for j, ((mask, loss), _model) in enumerate(ABLATION):
+        cells = []
+        for scene in scenes:
+            rows = data["scenes"][scene]["rows"]
+            for k in METRICS:
+                finite = [r[k] for r in rows if math.isfinite(r[k])]
+                v = rows[j][k]
+                cells.append(f"**{_fmt(v, k)}**" if finite and v == min(finite) else _fmt(v, k))
+        lines.append("| " + " | ".join(["✓" if mask else "×", "✓" if loss else "×"] + cells) + " |")
+    lines += ["", "Both off is iSDF; both on is AiSDF (w/o explicit map)."]
+    return "\n".join(lines) + "\n", data
+
+
+def table3(results: dict) -> tuple[str, dict]:
+    """Mean per-module runtime (ms) over scenes and seeds, per neural model; the voxel map's
+    integration and ESDF update; the paper's RTX 3090 row for comparison."""
+    per_model: dict[str, list[dict]] = {}
+    for s in results["scenes"].values():
+        for r in s["runs"]:
+            for model, summ in r["models"].items():
+                per_model.setdefault(model, []).append(summ.get("timings_ms", {}))
+    data: dict = {"title": "Table III", "unit": "ms", "machine": results.get("machine", {}), "models": {},
+                  "paper_rtx3090": PAPER_TABLE3}
+    for model, ts in per_model.items():
+        keys = sorted({k for t in ts for k in t})
+        data["models"][model] = {k: float(np.mean([t[k] for t in ts if k in t])) for k in keys}
+    neural = {m: t for m, t in data["models"].items() if m != "voxblox"}
+    extra = sorted({k for t in neural.values() for k in t} - set(MODULES) - {"sum", "step_wall", "keyframe_wall"})
+    cols = list(MODULES) + extra
+    lines = ["# Table III: runtime per module (ms)", "",
+             f"Machine: {results.get('machine', {}).get('summary', '?')}. Trainer modules (sampling .. backward) are "
+             "means per training step; AF estimation and surfel extraction are means per keyframe; Total adds the "
+             "module means, as the paper does. Measured around the calls: step wall = one `pipeline.step()`, "
+             "keyframe wall = one `pipeline.add_keyframe()` (with the Atlanta frame and surfels).", ""]
+    head = ["Model"] + [MODULES.get(c, c) for c in cols] + ["**Total**", "Step wall", "Keyframe wall"]
+    lines += ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    for model, t in neural.items():
+        cells = [f"{t[c]:.1f}" if c in t else "-" for c in cols]
+        walls = [f"{t[k]:.1f}" if k in t else "-" for k in ("step_wall", "keyframe_wall")]
+        lines.append("| " + " | ".join([model] + cells + [f"**{t.get('sum', float('nan')):.1f}**"] + walls) + " |")
+    lines.append("| paper (RTX 3090) | " + " | ".join(str(PAPER_TABLE3.get(c, "-")) for c in cols) +
+                 f" | **{PAPER_TABLE3['sum']}** | - | - |")
+    if "voxblox" in data["models"]:
+        v = data["models"]["voxblox"]
+        lines += ["", "| Voxel map | Integrate (ms / frame) | ESDF update (ms, whole grid) |", "|---|---|---|",
+                  f"| voxblox | {v.get('integrate', float('nan')):.1f} | {v.get('esdf', float('nan')):.1f} |"]
+    return "\n".join(lines) + "\n", data
+
+
+def _clean(o):
+    """JSON-safe: NaN/inf -> None, numpy scalars -> Python."""
+    if isinstance(o, dict):
+        return {str(k): _clean(v) for k, v in o.items()}
+    if isinstance(o, (list, tuple)):
+        return [_clean(v) for v in o]
+    if isinstance(o, (np.floating, float)):
+        return float(o) if math.isfinite(o) else None
+    if isinstance(o, np.integer):
+        return int(o)
+    if isinstance(o, np.ndarray):
+        return _clean(o.tolist())
+    return o
+
+
+def write_json(path: Path, obj) -> None:
+    Path(path).write_text(json.dumps(_clean(obj), indent=2))
+
+
+def write_tables(out: Path, results: dict) -> dict[str, str]:
+    """table1/2/3 .md and .json under ``out``; returns the markdown by name."""
+    md = {}
+    for name, fn in (("table1", table1), ("table2", table2), ("table3", table3)):
+        text, data = fn(results)
+        (out / f"{name}.md").write_text(text)
+        write_json(out / f"{name}.json", data)
+        md[name] = text
+    return md

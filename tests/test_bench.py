@@ -1,0 +1,210 @@
+"""``aisdf bench``: the quick profile end to end, the real-time replay, the metrics'
+plumbing, and the 7-Scenes reference (labelled as a reference)."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pytest
+
+import open3d  # noqa: F401 - the voxel baseline and the reference need it (dev extra)
+
+from aisdf.bench.evaluation import EvalSet
+from aisdf.bench.methods import METHODS, ComputeClock, Runner, checkpoint_indices, run_stream
+from aisdf.bench.profiles import resolve
+from aisdf.bench.report import METRICS
+from aisdf.bench.scenes import REFERENCE_LABEL, make_scene
+from aisdf.bench.suite import run
+from aisdf.cli import main as cli_main
+from aisdf.datasets import require_data
+
+ALL = list(METHODS)
+SCENE = "manhattan"
+
+
+@pytest.fixture(scope="module")
+def quick(tmp_path_factory):
+    """The --quick profile through the command line, once for the module."""
+    out = tmp_path_factory.mktemp("bench-quick")
+    cli_main(["bench", "--quick", "--out", str(out), "--no-progress"])
+    return out
+
+
+def _load(out, name):
+    return json.loads((out / name).read_text())
+
+
+def test_quick_writes_every_artefact(quick):
+    for name in ("table1", "table2", "table3"):
+        assert (quick / f"{name}.md").stat().st_size > 100
+        assert (quick / f"{name}.json").stat().st_size > 10
+    for png in (f"error_over_time_{SCENE}.png", f"sdf_slice_{SCENE}.png"):
+        assert (quick / png).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    for m in ALL:
+        assert (quick / "meshes" / SCENE / f"{m}.ply").stat().st_size > 1000, m
+    cfg = _load(quick, "config.json")
+    assert cfg["config"]["profile"] == "quick" and cfg["config"]["scenes"] == [SCENE]
+    assert cfg["versions"]["torch"] and cfg["machine"]["cpu_count"] and "aisdf" in cfg["versions"]
+    assert cfg["unavailable"] == {}, "every method must run (the Atlanta module must import)"
+    assert cfg["models"]["isdf"]["training"]["network"]["width"] == 64
+
+
+def test_quick_tables_are_finite_for_every_method(quick):
+    t1 = _load(quick, "table1.json")
+    assert t1["methods"] == ALL
+    for m in ALL:
+        row = t1["scenes"][SCENE]["methods"][m]
+        for k in METRICS:
+            assert math.isfinite(row[k]) and row[k] >= 0, (m, k, row[k])
+    rows = _load(quick, "table2.json")["scenes"][SCENE]["rows"]
+    assert [(r["surfel_mask"], r["surfel_loss"]) for r in rows] == [(False, False), (True, False), (False, True),
+                                                                     (True, True)]
+    assert all(math.isfinite(r[k]) for r in rows for k in METRICS)
+    t3 = _load(quick, "table3.json")["models"]
+    for model in ("isdf", "aisdf"):
+        for k in ("sampling", "bound", "forward", "backward", "sum"):
+            assert math.isfinite(t3[model][k]) and t3[model][k] > 0, (model, k)
+    assert t3["aisdf"]["sum"] > t3["aisdf"]["forward"] + t3["aisdf"]["backward"]
+    assert t3["voxblox"]["integrate"] > 0
+    md = (quick / "table1.md").read_text()
+    assert "iSDF" in md and "AiSDF (w. explicit map)" in md and "exact analytic SDF" in md
+
+
+def test_quick_errors_are_sane_on_the_synthetic_scene(quick):
+    """Voxblox-like map and iSDF against the exact SDF: a few cm, not tens."""
+    res = _load(quick, "results.json")
+    final = res["scenes"][SCENE]["runs"][0]["final"]
+    for m in ("voxblox", "isdf"):
+        assert final[m]["sdf_error_cm"] < 25.0, final[m]
+        assert final[m]["collision_cost_error"] < 0.2
+        assert final[m]["gradient_cosine_distance"] < 0.6
+        assert final[m]["n_points"] > 15_000
+    over = res["scenes"][SCENE]["runs"][0]["over_time"]
+    assert len(over) == 3 and over[-1]["frame"] == res["scenes"][SCENE]["frames"] - 1
+    models = res["scenes"][SCENE]["runs"][0]["models"]
+    assert models["voxblox"]["frames_seen"] == models["isdf"]["frames_seen"] == res["scenes"][SCENE]["frames"]
+    assert models["isdf"]["keyframes"] >= 3
+    # iterations mode: 50 steps after the first keyframe, 15 after each later one (quick = 1/4 of iSDF's)
+    assert models["isdf"]["steps"] == 50 + 15 * (models["isdf"]["keyframes"] - 1)
+
+
+# ------------------------------------------------------------------ real-time replay
+
+
+class _Stub(Runner):
+    """A model whose work takes a fixed time on the fake clock: see() ``cost_see``, step() ``cost_step``."""
+
+    def __init__(self, name, cost_see, cost_step):
+        self._t = 0.0  # the fake timer: advanced only by the work below
+        super().__init__(name, ComputeClock(timer=lambda: self._t))
+        self.cost_see, self.cost_step = cost_see, cost_step
+
+    def _spend(self, dt):
+        with self.clock.measure():
+            self._t += dt
+
+    def see(self, frame, train):
+        self._spend(self.cost_see)
+        self.frames_seen += 1
+        self.seen_ids.append(frame["frame_id"])
+
+    def step(self):
+        if self.cost_step is None:
+            return False
+        self._spend(self.cost_step)
+        self.steps += 1
+        return True
+
+
+class _Frames:
+    def __init__(self, n, fps=10.0):
+        self.n, self.fps = n, fps
+
+    def __len__(self):
+        return self.n
+
+    def frame(self, i):
+        return {"frame_id": i, "stamp": 100.0 + i / self.fps, "depth": np.zeros((2, 2), np.float32),
+                "K": np.eye(3), "T_WC": np.eye(4)}
+
+
+def test_realtime_replay_skips_frames_by_compute_time():
+    """8 frames a second (one every 8/64 s); costs in 1/64 s, so the clock arithmetic is exact."""
+    u = 1 / 64
+    fast, slow, idle = _Stub("fast", 1 * u, 2 * u), _Stub("slow", 1 * u, 16 * u), _Stub("map", 23 * u, None)
+    run_stream(_Frames(20, fps=8.0), [fast, slow, idle], "realtime", [], lambda *a: None)
+    assert fast.seen_ids == list(range(20))
+    assert 2.5 <= fast.clock.t < 2.5 + 3 * u
+    # see + one step = 17/64 s: the newest frame each time is two on; at t = 120/64 frame 14 has just
+    # arrived and is seen with no time left to train before frame 15
+    assert slow.seen_ids == [0, 2, 4, 6, 8, 10, 12, 14, 15, 17, 19] and slow.steps == 10
+    assert idle.seen_ids == [0, 2, 5, 8, 11, 14, 17]  # 23/64 s per frame, nothing to train in between
+
+
+def test_iterations_mode_feeds_every_frame_and_checkpoints():
+    a = _Stub("a", 0.5, 0.5)
+    calls = []
+    seen = run_stream(_Frames(12), [a], "iterations", checkpoint_indices(12, 3),
+                      lambda i, t, s: calls.append((i, round(t, 3), len(s))))
+    assert a.seen_ids == list(range(12))
+    assert calls == [(3, 0.3, 1), (7, 0.7, 2), (11, 1.1, 3)]
+    assert [f["frame_id"] for f in seen] == [0, 5, 10]
+
+
+def test_realtime_sees_fewer_frames_when_compute_is_slower(tmp_path):
+    """The whole suite in real-time mode, with compute time inflated 6x: fewer frames."""
+    seen = {}
+    for slowdown in (1.0, 6.0):
+        cfg = resolve("quick", scenes=[SCENE], methods=["voxblox", "isdf"], ablation=[], mode="realtime",
+                      frames=45, slowdown=slowdown, checkpoints=1, n_points=2_000, artefacts=False, progress=False,
+                      out=str(tmp_path / f"rt{slowdown}"))
+        res = run(cfg)
+        seen[slowdown] = res["scenes"][SCENE]["runs"][0]["models"]
+        assert all(math.isfinite(res["scenes"][SCENE]["runs"][0]["final"][m]["sdf_error_cm"])
+                   for m in ("voxblox", "isdf"))
+    for m in ("voxblox", "isdf"):
+        assert seen[6.0][m]["frames_seen"] < seen[1.0][m]["frames_seen"], (m, seen)
+    assert seen[6.0]["isdf"]["frames_seen"] <= 45 / 2
+
+
+# ------------------------------------------------------------------ evaluation and scenes
+
+
+def test_ground_truth_scores_zero_on_its_own_points():
+    sc = make_scene("atlanta", {"n_frames": 10, "H": 30, "W": 40})
+    frames = [sc.frames.frame(i) for i in range(0, 10, 5)]
+    es = EvalSet(sc, frames, 3_000, 0)
+    r = es.score(lambda p, g: (sc.gt_sdf(p), sc.gt_grad(p)))
+    assert r["sdf_error_cm"] == 0 and r["collision_cost_error"] == 0
+    assert r["gradient_cosine_distance"] < 1e-12 and r["n_gradient_points"] <= r["n_points"] == 3_000
+    shifted = es.score(lambda p, g: (sc.gt_sdf(p) + 0.05, -sc.gt_grad(p)))
+    assert shifted["sdf_error_cm"] == pytest.approx(5.0)
+    assert shifted["gradient_cosine_distance"] == pytest.approx(2.0)
+
+
+def test_checkpoint_indices():
+    assert checkpoint_indices(120, 3) == [39, 79, 119]
+    assert checkpoint_indices(5, 10) == [0, 1, 2, 3, 4]
+    assert checkpoint_indices(7, 1) == [6]
+
+
+def test_7scenes_reference_is_labelled_as_reference(tmp_path):
+    data = require_data("7scenes-redkitchen").parent
+    sc = make_scene("7scenes-redkitchen", {"reference_voxel": 0.03, "max_frames": 10, "cache_dir": str(tmp_path)},
+                    data)
+    assert sc.is_reference and REFERENCE_LABEL in sc.gt_label and "all 250 frames" in sc.gt_label
+    assert not sc.signed and sc.far_margin == 0.0 and len(sc) == 10
+    assert list(tmp_path.glob("reference-*.ply"))  # cached for the next run
+    assert abs(np.linalg.norm(sc.up) - 1) < 1e-9 and sc.up @ -sc.frames.poses()[:, :3, 1].mean(0) > 0
+    cfg = resolve("quick", scenes=["7scenes-redkitchen"], methods=["voxblox"], ablation=[], frames=10,
+                  checkpoints=1, n_points=2_000, artefacts=False, progress=False, data=str(data),
+                  cache_dir=str(tmp_path), out=str(tmp_path / "out"),
+                  scene_opts={"7scenes-redkitchen": {"reference_voxel": 0.03}})
+    run(cfg)
+    md = (tmp_path / "out" / "table1.md").read_text()
+    assert "7scenes-redkitchen (**reference, not truth**)" in md
+    t1 = json.loads((tmp_path / "out" / "table1.json").read_text())["scenes"]["7scenes-redkitchen"]
+    assert t1["gt_kind"] == "reference" and t1["ground_truth"].startswith(REFERENCE_LABEL)
+    assert 0 < t1["methods"]["voxblox"]["sdf_error_cm"] < 25
