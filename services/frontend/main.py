@@ -72,7 +72,7 @@ def main(cfg: FrontendConfig, stop: threading.Event | None = None) -> dict:
     with transport.open_session(cfg.zenoh) as session:
         token = session.liveliness().declare_token(keys.status_key(cfg.namespace, "frontend", uuid.uuid4().hex[:8]))
         counts: dict = {"frames": 0, "keyframes": 0, "done": False}
-        info = transport.serve(session, keys.key(cfg.namespace, INFO_KEY), lambda _req: {"v": 1, **counts})
+        info = transport.serve(session, keys.key(cfg.namespace, INFO_KEY), lambda _req: {"v": 1, **counts}, allow_empty=True)
         key = keys.key(cfg.namespace, keys.KEYFRAMES)
         log.info("frontend streaming %s to %s", cfg.source if cfg.source != "synthetic" else
                  f"synthetic '{cfg.building}'", key)

@@ -165,7 +165,7 @@ class MapperNode:
                                  lambda sample: self.on_keyframe(transport.payload_bytes(sample.payload))),
             s.declare_queryable(keys.key(self.ns, keys.MAP_WEIGHTS), self._latest(keys.MAP_WEIGHTS)),
             s.declare_queryable(keys.key(self.ns, keys.MAP_SURFELS), self._latest(keys.MAP_SURFELS)),
-            transport.serve(s, keys.key(self.ns, INFO_KEY), lambda _req: self.info()),
+            transport.serve(s, keys.key(self.ns, INFO_KEY), lambda _req: self.info(), allow_empty=True),
             s.liveliness().declare_token(keys.status_key(self.ns, "mapper", uuid.uuid4().hex[:8])),
         ]
         if self.pipeline.n_keyframes:

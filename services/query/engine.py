@@ -102,7 +102,7 @@ class QueryEngine:
         sdf = np.empty(len(pts), np.float32)
         grad = np.empty((len(pts), 3), np.float32) if gradient else None
         for i in range(0, len(pts), self.chunk_points):
-            x = torch.from_numpy(np.ascontiguousarray(pts[i:i + self.chunk_points], dtype=np.float32)).to(self.device)
+            x = torch.from_numpy(np.array(pts[i:i + self.chunk_points], dtype=np.float32)).to(self.device)
             if gradient:
                 with torch.enable_grad():
                     x.requires_grad_(True)

@@ -112,21 +112,24 @@ class QueryNode:
             item = jobs.get()
             if item is None:
                 return
-            q, req = item
-            try:
-                if isinstance(req, protocol.SdfRequest):
-                    rep = self.engine.answer_sdf(req)
-                else:
-                    rep = self.engine.answer_mesh(req)
-                q.reply(q.key_expr, protocol.pack(rep.to_msg()), encoding=transport.ENCODING)
-                self.answered += 1
-            except protocol.ProtocolError as e:
-                self._reply_err(q, e)
-            except Exception as e:  # noqa: BLE001
-                log.exception("internal error answering a request")
-                self._reply_err(q, protocol.ProtocolError("internal", f"{type(e).__name__}: {e}"))
-            finally:
-                del q
+            self._answer(*item)
+            # Drop the last reference now: Zenoh finalises a query (and the requester's
+            # get returns) only when the Query object is released.
+            del item
+
+    def _answer(self, q, req) -> None:
+        try:
+            if isinstance(req, protocol.SdfRequest):
+                rep = self.engine.answer_sdf(req)
+            else:
+                rep = self.engine.answer_mesh(req)
+            q.reply(q.key_expr, protocol.pack(rep.to_msg()), encoding=transport.ENCODING)
+            self.answered += 1
+        except protocol.ProtocolError as e:
+            self._reply_err(q, e)
+        except Exception as e:  # noqa: BLE001
+            log.exception("internal error answering a request")
+            self._reply_err(q, protocol.ProtocolError("internal", f"{type(e).__name__}: {e}"))
 
     # ------------------------------------------------------------------ lifecycle
 

@@ -14,15 +14,20 @@ def fuse(sdf_i: np.ndarray, grad_i: np.ndarray | None, sdf_e: np.ndarray, grad_e
          radius: float = DEFAULT_FUSE_RADIUS) -> tuple[np.ndarray, np.ndarray | None, np.ndarray]:
     """Returns (sdf, gradient or None, mask of points where the explicit map won).
 
-    The explicit distance is used only within ``radius`` of a surfel: far from every
-    surfel the nearest rectangle says nothing about the obstacles in between, and a point
-    behind a distant wall surfel (negative explicit distance) may be free space of the
-    next room."""
-    use = (np.abs(sdf_e) <= radius) & (sdf_e < sdf_i)
-    sdf = np.where(use, sdf_e, sdf_i)
+    As the paper does, the explicit value is the (unsigned) distance to the closest surfel
+    point: surfels are one-sided pieces of surface, so "behind a surfel" is not "inside an
+    obstacle" (under a table top, behind a cabinet's front). Inside is the network's to say:
+    where it is negative it is smaller and wins. The explicit distance is used only within
+    ``radius`` of a surfel; far from every surfel it says nothing about obstacles in between.
+    ``sdf_e``/``grad_e`` may be signed (``surfel_map.explicit_sdf``); they are made unsigned
+    here, the gradient pointing from the surfel point to the query point."""
+    d_e = np.abs(sdf_e)
+    use = (d_e <= radius) & (d_e < sdf_i)
+    sdf = np.where(use, d_e, sdf_i)
     grad = None
     if grad_i is not None:
         grad = np.array(grad_i, copy=True)
         if grad_e is not None:
-            grad[use] = grad_e[use]
+            g_u = np.where((sdf_e < 0)[:, None], -grad_e, grad_e)
+            grad[use] = g_u[use]
     return sdf, grad, use

@@ -63,7 +63,10 @@ class Stack:
         return cmd + list(self.args.get(name, []))
 
     def start(self, only: list[str] | None = None) -> "Stack":
-        env = {**os.environ, "PYTHONUNBUFFERED": "1", **self.env}
+        # One BLAS/OpenMP thread per service unless told otherwise: on a small machine
+        # the three processes otherwise oversubscribe the cores (spinning threads).
+        env = {"OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1", "MKL_NUM_THREADS": "1",
+               **os.environ, "PYTHONUNBUFFERED": "1", **self.env}
         for name in only or self.services:
             out = subprocess.DEVNULL
             if self.log_dir:

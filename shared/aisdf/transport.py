@@ -57,22 +57,38 @@ def get_latest(session: zenoh.Session, key: str, timeout: float = 2.0) -> dict |
 
 
 def query(session: zenoh.Session, key: str, msg: Mapping[str, Any], timeout: float = 10.0) -> dict:
-    """Send a request, return the first reply's message; raise ProtocolError on an error reply."""
+    """Send a request, return the first reply's message; raise ProtocolError on a protocol
+    error reply, TimeoutError when no service answers. Error replies that are not protocol
+    messages (Zenoh's own, e.g. a timeout) are reported only if nothing else arrives."""
+    other = None
     for reply in session.get(key, payload=protocol.pack(msg), encoding=ENCODING, timeout=timeout):
         if reply.ok is not None:
             return protocol.unpack(payload_bytes(reply.ok.payload))
-        raise protocol.decode_error(payload_bytes(reply.err.payload))
+        raw = payload_bytes(reply.err.payload)
+        try:
+            err = protocol.unpack(raw)
+        except protocol.ProtocolError:
+            other = raw
+            continue
+        raise protocol.decode_error(protocol.pack(err))
+    if other is not None:
+        text = other.decode("utf-8", "replace")[:200]
+        if "timeout" in text.lower():
+            raise TimeoutError(f"no reply on {key} within {timeout:.1f} s ({text})")
+        raise protocol.ProtocolError("internal", f"transport error on {key}: {text}")
     raise TimeoutError(f"no reply on {key} within {timeout:.1f} s (is a query service running?)")
 
 
-def serve(session: zenoh.Session, key: str, handler: Callable[[dict], Mapping[str, Any]]):
+def serve(session: zenoh.Session, key: str, handler: Callable[[dict], Mapping[str, Any]], allow_empty: bool = False):
     """Declare a queryable whose ``handler(request_msg) -> reply_msg`` may raise
     ProtocolError (sent as that error) or anything else (sent as ``internal``).
-    The service never stops on a bad request."""
+    The service never stops on a bad request. ``allow_empty``: a query without payload
+    counts as ``{"v": 1}`` (for read-only endpoints)."""
 
     def on_query(q: zenoh.Query) -> None:
         try:
-            req = protocol.unpack(payload_bytes(q.payload))
+            raw = payload_bytes(q.payload)
+            req = {"v": protocol.VERSION} if allow_empty and not raw else protocol.unpack(raw)
             reply = handler(req)
             q.reply(q.key_expr, protocol.pack(reply), encoding=ENCODING)
         except protocol.ProtocolError as e:

@@ -1,0 +1,26 @@
+"""The fused SDF rule (paper Sec. IV-D) on hand-made values."""
+
+import numpy as np
+
+from aisdf.fusion import fuse
+
+
+def test_fuse_takes_the_smaller_distance_near_a_surfel():
+    sdf_i = np.array([0.30, 0.30, -0.05, 2.0, 0.10])
+    grad_i = np.tile([0.0, 0.0, 1.0], (5, 1))
+    sdf_e = np.array([0.10, -0.20, 0.01, 0.90, 0.40])  # signed, as explicit_sdf returns
+    grad_e = np.tile([1.0, 0.0, 0.0], (5, 1))
+    sdf, grad, use = fuse(sdf_i, grad_i, sdf_e, grad_e, radius=0.5)
+    # 0: explicit 0.10 < 0.30 wins; 1: behind a surfel counts as 0.20 away (unsigned), wins,
+    # gradient flipped; 2: the network says inside (-0.05), stays; 3: surfel beyond the
+    # radius, ignored; 4: network nearer, stays.
+    np.testing.assert_allclose(sdf, [0.10, 0.20, -0.05, 2.0, 0.10])
+    assert use.tolist() == [True, True, False, False, False]
+    np.testing.assert_allclose(grad[0], [1, 0, 0])
+    np.testing.assert_allclose(grad[1], [-1, 0, 0])
+    np.testing.assert_allclose(grad[2:], grad_i[2:])
+
+
+def test_fuse_without_gradients():
+    sdf, grad, use = fuse(np.array([1.0]), None, np.array([0.2]), None)
+    assert grad is None and sdf.tolist() == [0.2] and use.tolist() == [True]
