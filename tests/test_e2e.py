@@ -150,8 +150,40 @@ def test_stranger_client_maps_a_scene_the_project_never_saw():
             assert untrained > 0.4
             status, info = sc.request(s, f"{NS}/info/mapper", {"v": 1})
             assert status == "ok" and info["rejected"] == 1 and info["accepted"] == len(poses)
+            check_surfel_map(s, room)
+            # The explicit source answers with distances to the planar map.
+            status, msg = sc.query_sdf(s, NS, pts[:500], source="explicit")
+            assert status == "ok"
+            near = np.abs(gt[:500]) < 0.3
+            err = np.abs(sc.unarr(msg["sdf"])[near] - gt[:500][near])
+            assert np.median(err) < 0.05
         finally:
             s.close()
+
+
+def check_surfel_map(s, room):
+    """The stranger gets the Atlanta frame and the surfels with a plain `get`, and they
+    match its room: vertical, the two wall directions, surfels on the room's planes."""
+    for r in s.get(f"{NS}/map/surfels", timeout=5.0):
+        assert r.ok is not None
+        m = msgpack.unpackb(r.ok.payload.to_bytes(), raw=False)
+    assert m["v"] == 1
+    up, wx, wy = room.wall_normals_W()
+    vert = sc.unarr(m["atlanta"]["vertical"])
+    hor = sc.unarr(m["atlanta"]["horizontal"])
+    assert np.degrees(np.arccos(min(1.0, abs(vert @ up)))) < 1.0
+    for w in (wx, wy):
+        assert np.degrees(np.arccos(min(1.0, np.max(np.abs(hor @ w))))) < 2.0
+    assert len(hor) == 2  # a box room: no spurious direction
+    surf = {k: sc.unarr(v) for k, v in m["surfels"].items()}
+    n = len(surf["center"])
+    assert n >= 4
+    # Every surfel's centre lies on one of the room's planes (walls, floor, ceiling, pillar).
+    c_R = room.to_room(surf["center"].astype(float))
+    lo, hi, plo, phi = room.lo, room.hi, room.p_lo, room.p_hi
+    d = np.min(np.abs(np.concatenate([c_R - lo, c_R - hi, c_R - plo, c_R - phi], axis=1)), axis=1)
+    assert np.mean(d < 0.03) > 0.9, d
+    assert set(np.unique(surf["direction"])) <= {-1, 0, 1}
 
 
 def test_demo_maps_the_synthetic_building(tmp_path):

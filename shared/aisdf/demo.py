@@ -75,7 +75,7 @@ def eval_points_from(seq, n_frames_seen: int, n_points: int, rng) -> np.ndarray:
     return eval_points(frames, n_points=n_points, every=1, rng=rng, far_margin=0.1)
 
 
-def planner_example(client: SdfClient, seq, epsilon: float = 0.3) -> dict:
+def planner_example(client: SdfClient, seq, epsilon: float = 1.0) -> dict:
     """A candidate straight path between two camera positions: collision cost along it."""
     a, b = seq.poses[0][:3, 3], seq.poses[len(seq) // 2][:3, 3]
     path = a + np.linspace(0, 1, 200)[:, None] * (b - a)
@@ -109,6 +109,10 @@ def run(duration: float = 180.0, out: str | Path = "runs/demo", building: str = 
     history, summary = [], {}
     recorder = Recorder(out / "demo.rrd")
     t0 = time.monotonic()
+    tty = sys.stdout.isatty()
+    if not quiet:
+        print(f"AiSDF demo: frontend, mapper and query on loopback, synthetic '{building}' building, "
+              f"{duration:.0f} s; logs in {out / 'logs'}")
     try:
         stack.start(["query", "mapper"])
         with SdfClient(ns, zenoh=stack.client_zenoh, timeout=30.0) as client:
@@ -143,13 +147,14 @@ def run(duration: float = 180.0, out: str | Path = "runs/demo", building: str = 
                         log.info("mesh not ready: %s", e)
                     last_mesh = el
                 history.append(row)
-                if not quiet:
+                if not quiet and (tty or "sdf_error_cm" in row):
                     err = f"{row['sdf_error_cm']:6.2f} cm" if "sdf_error_cm" in row else "   ...   "
-                    sys.stdout.write(f"\r[{el:5.0f}/{duration:.0f} s] frames {row['frames']:5d}  keyframes "
-                                     f"{row['keyframes']:4d}  steps {row['steps']:6d}  map v{row['map_version']:<5d} "
-                                     f"SDF error {err}")
+                    line = (f"[{el:5.0f}/{duration:.0f} s] frames {row['frames']:5d}  keyframes {row['keyframes']:4d}  "
+                            f"steps {row['steps']:6d}  map v{row['map_version']:<5d} SDF error {err}")
+                    # On a terminal one line is redrawn; in a log, a line per evaluation.
+                    sys.stdout.write(f"\r{line}" if tty else f"{line}\n")
                     sys.stdout.flush()
-            if not quiet:
+            if not quiet and tty:
                 print()
             summary = finish(client, seq, out, recorder, rng, history, time.monotonic() - t0, quiet)
             kf_sub.undeclare()
