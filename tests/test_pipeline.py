@@ -1,0 +1,127 @@
+"""The mapper's algorithm in-process: keyframe validation, checkpoints, the map's messages,
+and the query engine answering from them."""
+
+import numpy as np
+import pytest
+import torch
+
+from aisdf import protocol
+from aisdf.mapping.frames import Frame
+from aisdf.pipeline import MappingPipeline
+from aisdf.synthetic import SyntheticSequence
+from aisdf_query.engine import MapState, QueryEngine
+
+torch.set_num_threads(1)
+
+
+@pytest.fixture(scope="module")
+def seq():
+    return SyntheticSequence(building="atlanta", n_frames=120, H=60, W=80, seed=1)
+
+
+def frame(seq, i):
+    f = seq.frame(i)
+    return Frame(f["frame_id"], f["stamp"], f["depth"], f["K"], f["T_WC"])
+
+
+def small(atlanta=True):
+    return MappingPipeline.from_settings("cpu", {"network": {"width": 32}, "n_rays": 20}, atlanta=atlanta)
+
+
+def test_bad_keyframes_leave_the_map_untouched(seq):
+    p = small()
+    p.add_keyframe(frame(seq, 0))
+    p.step()
+    before = p.trainer.state_numpy()
+    empty = frame(seq, 30)
+    empty.depth = np.zeros_like(empty.depth)
+    with pytest.raises(ValueError, match="valid depth"):
+        p.add_keyframe(empty)
+    with pytest.raises(ValueError, match="already"):
+        p.add_keyframe(frame(seq, 0))
+    assert p.n_keyframes == 1 and p.steps == 1
+    after = p.trainer.state_numpy()
+    assert all(np.array_equal(before[k], after[k]) for k in before)
+
+
+def test_checkpoint_restore_continues_identically(seq):
+    p = small()
+    for i in (0, 30, 60):
+        p.add_keyframe(frame(seq, i))
+    for _ in range(3):
+        p.step()
+    q = MappingPipeline.restore(p.checkpoint())
+    assert (q.steps, q.n_keyframes) == (p.steps, p.n_keyframes)
+    pts = np.random.default_rng(0).uniform(-1, 1, (100, 3)) + seq.poses[0][:3, 3]
+    np.testing.assert_array_equal(p.sdf(pts), q.sdf(pts))
+    assert len(q.surfels()) == len(p.surfels())
+    p.step()
+    q.step()
+    np.testing.assert_allclose(p.sdf(pts), q.sdf(pts), atol=1e-6)
+
+
+def test_messages_and_query_engine_agree(seq):
+    p = small()
+    for i in (0, 20, 40, 60, 80):
+        p.add_keyframe(frame(seq, i))
+    for _ in range(5):
+        p.step()
+    snap = protocol.WeightSnapshot.from_msg(protocol.unpack(protocol.pack(p.weight_snapshot(3).to_msg())))
+    assert snap.version == 3 and snap.step == 5 and np.asarray(snap.model["bounds"]).shape == (2, 3)
+    smap = p.surfel_map(3)
+    assert smap is not None
+    smap = protocol.SurfelMap.from_msg(protocol.unpack(protocol.pack(smap.to_msg())))
+    v, _ = seq.scene.atlanta_truth()
+    assert abs(abs(smap.vertical @ v) - 1) < 1e-3
+    assert len(smap) > 0
+    eng = QueryEngine(device="cpu")
+    with pytest.raises(protocol.ProtocolError) as e:
+        eng.answer_sdf(protocol.SdfRequest(np.zeros((1, 3))))
+    assert e.value.code == "no_map"
+    assert eng.set_weights(snap) and not eng.set_weights(snap)  # same version: ignored
+    pts = seq.poses[0][:3, 3] + np.random.default_rng(1).uniform(-1, 1, (300, 3))
+    r = eng.answer_sdf(protocol.SdfRequest(pts.astype(np.float32), source="implicit", gradient=True))
+    np.testing.assert_allclose(r.sdf, p.sdf(pts.astype(np.float32)), atol=1e-5)
+    with pytest.raises(protocol.ProtocolError) as e:
+        eng.answer_sdf(protocol.SdfRequest(pts, source="explicit"))
+    assert e.value.code == "no_map"  # no surfels yet
+    assert eng.set_surfels(smap)
+    r_e = eng.answer_sdf(protocol.SdfRequest(pts, source="explicit"))
+    r_f = eng.answer_sdf(protocol.SdfRequest(pts, gradient=True, collision_epsilon=1.0))
+    assert np.all(r_f.sdf <= r.sdf + 1e-6)  # fused never exceeds the network alone
+    assert np.isfinite(r_e.sdf).all() and r_f.collision.shape == (300,)
+    eng.max_points = 10
+    with pytest.raises(protocol.ProtocolError) as e:
+        eng.answer_sdf(protocol.SdfRequest(pts))
+    assert e.value.code == "too_large"
+
+
+def test_bad_snapshot_keeps_the_old_map(seq):
+    p = small(atlanta=False)
+    p.add_keyframe(frame(seq, 0))
+    p.step()
+    assert p.surfel_map(1) is None
+    eng = QueryEngine(device="cpu")
+    eng.set_weights(p.weight_snapshot(1))
+    bad = p.weight_snapshot(2)
+    bad.state.pop(next(iter(bad.state)))
+    with pytest.raises(ValueError):
+        eng.set_weights(bad)
+    assert eng.state.version == 1
+
+
+class Sphere(torch.nn.Module):
+    def forward(self, x):
+        return (torch.linalg.norm(x, dim=-1) - 0.5).unsqueeze(-1)
+
+
+def test_mesh_of_a_known_field():
+    eng = QueryEngine(device="cpu", mesh_max_cells=10**6)
+    eng._state = MapState(7, 0, Sphere(), np.array([[-1.0, -1, -1], [1, 1, 1]]), None, -1)
+    m = eng.answer_mesh(protocol.MeshRequest(0.05))
+    r = np.linalg.norm(m.vertices, axis=1)
+    assert m.map_version == 7 and len(m.faces) > 100
+    assert np.abs(r - 0.5).max() < 0.01
+    with pytest.raises(protocol.ProtocolError) as e:
+        eng.answer_mesh(protocol.MeshRequest(0.001))
+    assert e.value.code == "too_large"
