@@ -196,3 +196,34 @@ def test_demo_maps_the_synthetic_building(tmp_path):
     assert summary["history"][-1]["keyframes"] > 5 and summary["history"][-1]["steps"] > 50
     assert (tmp_path / "demo.rrd").stat().st_size > 10_000
     assert (tmp_path / "mesh.ply").exists()
+
+
+def test_mapper_resumes_its_map_after_a_restart(tmp_path):
+    room = sc.BoxRoom()
+    poses = room.poses(24)[::4]
+    H, W = 60, 80
+    K2 = K.copy()
+    K2[:2] /= 2
+    args = ["--preset", "cpu", "--checkpoint-dir", str(tmp_path), "--set", "checkpoint_period_s=1",
+            "--set", "training.network.width=32"]
+    with Stack(services=("mapper",), namespace=NS, args={"mapper": args}) as st:
+        s = sc.open_session(st.endpoints)
+        try:
+            info = lambda: (lambda r: r[1] if r[0] == "ok" else None)(sc.request(s, f"{NS}/info/mapper", {"v": 1}, 2.0))  # noqa: E731
+            wait_for(info, 60, what="the mapper")
+            for i, T in enumerate(poses):
+                s.put(f"{NS}/keyframes", sc.keyframe_payload(i, i * 0.5, room.render(T, K2, H, W), K2, T),
+                      encoding=sc.ENC)
+                time.sleep(0.1)
+            before = wait_for(lambda: (lambda i: i if i and i["keyframes"] == len(poses) and i["steps"] > 20 else None)(info()),
+                              90, what="training")
+            assert st.stop_one("mapper") == 0  # SIGTERM: clean exit, checkpoint written
+            assert (tmp_path / "mapper-checkpoint.pt").exists()
+            st.start(["mapper"])
+            after = wait_for(info, 60, what="the restarted mapper")
+            assert after["keyframes"] == len(poses) and after["steps"] >= before["steps"]
+            assert after["version"] >= before["version"]
+            status, msg = sc.request(s, f"{NS}/map/weights", {"v": 1}, 5.0)
+            assert status == "ok" and msg["version"] >= before["version"] and msg["step"] >= before["steps"]
+        finally:
+            s.close()

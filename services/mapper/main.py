@@ -192,8 +192,11 @@ def main(cfg: MapperConfig, stop: threading.Event | None = None) -> None:
         while not stop.wait(0.5):
             if time.monotonic() - last > 10:
                 i = node.info()
-                log.info("version %d, %d steps, %d keyframes, %d pending, %d rejected, %d dropped", i["version"],
-                         i["steps"], i["keyframes"], i["pending"], i["rejected"], i["dropped"])
+                t = i["stats"]
+                times = " ".join(f"{k} {t[k]:.1f}" for k in ("atlanta", "surfels", "sampling", "bound", "forward",
+                                                               "backward", "total") if k in t)
+                log.info("version %d, %d steps, %d keyframes, %d pending, %d rejected, %d dropped; ms: %s",
+                         i["version"], i["steps"], i["keyframes"], i["pending"], i["rejected"], i["dropped"], times)
                 last = time.monotonic()
         node.stop()
 
