@@ -1,0 +1,57 @@
+"""Camera geometry on exact cases."""
+
+import numpy as np
+
+from aisdf import geometry as g
+from aisdf.collision import chomp_cost
+
+
+def test_backproject_known_pixels():
+    K = g.intrinsics(100.0, 100.0, 2.0, 1.0)
+    d = np.zeros((3, 5))
+    d[1, 2] = 2.0  # the principal point
+    d[0, 4] = 1.0
+    P = g.backproject(d, K)
+    np.testing.assert_allclose(P[1, 2], [0, 0, 2])
+    np.testing.assert_allclose(P[0, 4], [0.02, -0.01, 1.0])
+    assert np.isnan(P[0, 0]).all()
+
+
+def test_transform_and_invert():
+    c, s = np.cos(0.7), np.sin(0.7)
+    T = np.eye(4)
+    T[:3, :3] = [[c, -s, 0], [s, c, 0], [0, 0, 1]]
+    T[:3, 3] = [1, 2, 3]
+    p = np.array([[0.5, -1.0, 2.0]])
+    np.testing.assert_allclose(g.transform(g.invert(T), g.transform(T, p)), p)
+    np.testing.assert_allclose(g.invert(T) @ T, np.eye(4), atol=1e-12)
+    np.testing.assert_allclose(g.rotate(T, np.array([1.0, 0, 0])), [c, s, 0])
+
+
+def test_normals_of_a_tilted_plane_face_the_camera():
+    H, W = 40, 60
+    K = g.intrinsics(50.0, 50.0, 29.5, 19.5)
+    n_true = np.array([0.3, -0.2, -1.0])
+    n_true /= np.linalg.norm(n_true)
+    # Plane n . p = -2 (2 m in front): depth = -2 / (n . ray)
+    rays = g.ray_dirs_C(K, H, W)
+    depth = -2.0 / (rays @ n_true)
+    N = g.normals_from_depth(depth, K)
+    inner = N[1:-1, 1:-1].reshape(-1, 3)
+    np.testing.assert_allclose(inner, np.tile(n_true, (len(inner), 1)), atol=1e-9)
+    assert np.isnan(N[0]).all() and np.isnan(N[:, -1]).all()
+
+
+def test_normals_are_nan_across_depth_jumps():
+    K = g.intrinsics(50.0, 50.0, 9.5, 9.5)
+    d = np.full((20, 20), 2.0)
+    d[:, 10:] = 4.0
+    N = g.normals_from_depth(d, K)
+    assert np.isnan(N[5, 9]).all() and np.isnan(N[5, 10]).all()
+    np.testing.assert_allclose(N[5, 5], [0, 0, -1])
+
+
+def test_chomp_cost_values():
+    e = 2.0
+    np.testing.assert_allclose(chomp_cost(np.array([-1.0, 0.0, 0.5, 2.0, 3.0]), e),
+                               [2.0, 1.0, (0.5 - 2) ** 2 / 4, 0.0, 0.0])
