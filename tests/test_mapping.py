@@ -129,7 +129,15 @@ def test_training_loss_totals_and_surfel_switch():
     # Surfel loss on: |f| + 0.4 (1 - cos) + 0.2 |‖∇f‖ - 1| on surfel points, iSDF's on the others.
     s2 = 0.2 + 0.4 * 2.0 + 0.2 * 0.0
     s3 = 0.1 + 0.0 + 0.0
+    # Default ("joint"): one mean over all points, each with the loss of its kind.
     loss, terms, per_frame = training_loss(f, grad, b, g, kind, slot, 3, TrainingConfig(surfel_loss=True))
+    assert float(loss) == pytest.approx((p0 + p1 + s2 + s3) / 4, rel=1e-6)
+    assert terms["surfel"] == pytest.approx((s2 + s3) / 4, rel=1e-6)
+    assert terms["sdf"] + terms["eikonal"] + terms["grad"] + terms["surfel"] == pytest.approx(terms["loss"], rel=1e-6)
+    np.testing.assert_allclose(per_frame[:2], [(p0 + p1) / 2, (s2 + s3) / 2], rtol=1e-6)
+    # "separate": mean over the non-surfel points + mean over the surfel points.
+    cfg = TrainingConfig(surfel_loss=True, surfel_loss_mean="separate")
+    loss, terms, per_frame = training_loss(f, grad, b, g, kind, slot, 3, cfg)
     assert float(loss) == pytest.approx((p0 + p1) / 2 + (s2 + s3) / 2, rel=1e-6)
     assert terms["surfel"] == pytest.approx((s2 + s3) / 2, rel=1e-6)
     assert np.isnan(per_frame[2])
@@ -217,6 +225,8 @@ def test_surfel_sampling_and_mask():
     b0 = sample_frame(kf, 0, TrainingConfig(), rng)
     assert len(b0) == 200 * 27 and not np.any(b0.kind == SURFEL)
     b = sample_frame(kf, 0, TrainingConfig(surfel_mask=True), rng)
+    assert (b.kind == SURFACE).sum() == 200  # default: surfel points come on top of the rays
+    b = sample_frame(kf, 0, TrainingConfig(surfel_mask=True, surfels_replace_rays=True), rng)
     assert (b.kind == SURFACE).sum() == 199  # one surfel replaces one ray
     sp = b.points_W[b.kind == SURFEL]
     assert len(sp) == 27
@@ -288,7 +298,7 @@ def _tiny_cfg(**kw):
 
 @pytest.mark.parametrize("switches", [{}, {"surfel_mask": True}, {"surfel_mask": True, "surfel_loss": True}])
 def test_two_step_smoke_training(switches):
-    trainer = Trainer(_tiny_cfg(**switches))
+    trainer = Trainer(_tiny_cfg(surfels_replace_rays=True, **switches))
     frames = room_frames(3)
     frames[1].surfels = floor_surfels()
     for f in frames:

@@ -8,7 +8,7 @@ uniform draw in each of as many equal bins). With surfels in use (config
 ``uses_surfels``) a frame with surfels also gets ``samples_per_ray`` points uniform on
 each surfel rectangle; with ``surfel_mask`` its rays come only from non-surfel pixels
 (those not set in ``Frame.surfel_mask``; all valid pixels when the frame has no mask),
-and with ``surfels_replace_rays`` it gets one ray fewer per surfel.
+and with ``surfels_replace_rays`` (off by default, see config.py) it gets one ray fewer per surfel.
 """
 
 from __future__ import annotations
