@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import argparse
 import logging
-import signal
 import threading
 import time
 import uuid
@@ -13,7 +12,7 @@ import uuid
 import numpy as np
 
 from aisdf import keys, protocol, transport
-from aisdf.config import add_common_args, config_from_args
+from aisdf.config import add_common_args, config_from_args, service_setup
 
 from .config import FrontendConfig
 from .keyframes import KeyframeSelector
@@ -103,10 +102,7 @@ def cli(argv: list[str] | None = None) -> None:
     cfg = config_from_args(FrontendConfig, args, {"source": args.source, "path": args.path,
                                                   "building": args.building, "max_frames": args.max_frames,
                                                   "realtime": False if args.fast else None})
-    logging.basicConfig(level=cfg.log_level, format="%(asctime)s frontend %(levelname)s %(message)s")
-    stop = threading.Event()
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(sig, lambda *_: stop.set())
+    stop = service_setup(cfg, "frontend")
     try:
         main(cfg, stop)
     except (ValueError, FileNotFoundError) as e:

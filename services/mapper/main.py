@@ -15,7 +15,6 @@ from __future__ import annotations
 import argparse
 import collections
 import logging
-import signal
 import threading
 import time
 import uuid
@@ -24,7 +23,7 @@ from pathlib import Path
 import torch
 
 from aisdf import keys, protocol, transport
-from aisdf.config import add_common_args, config_from_args
+from aisdf.config import add_common_args, config_from_args, service_setup
 from aisdf.pipeline import MappingPipeline
 
 from .config import MapperConfig
@@ -214,10 +213,7 @@ def cli(argv: list[str] | None = None) -> None:
     args = p.parse_args(argv)
     cfg = config_from_args(MapperConfig, args, {"preset": args.preset, "checkpoint_dir": args.checkpoint_dir,
                                                 "atlanta": False if args.no_atlanta else None})
-    logging.basicConfig(level=cfg.log_level, format="%(asctime)s mapper %(levelname)s %(message)s")
-    stop = threading.Event()
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(sig, lambda *_: stop.set())
+    stop = service_setup(cfg, "mapper")
     main(cfg, stop)
 
 

@@ -11,7 +11,6 @@ from __future__ import annotations
 import argparse
 import logging
 import queue
-import signal
 import threading
 import time
 import uuid
@@ -19,7 +18,7 @@ import uuid
 import torch
 
 from aisdf import keys, protocol, transport
-from aisdf.config import add_common_args, config_from_args
+from aisdf.config import add_common_args, config_from_args, service_setup
 
 from .config import QueryConfig
 from .engine import QueryEngine
@@ -187,10 +186,7 @@ def cli(argv: list[str] | None = None) -> None:
     p.add_argument("--device", choices=["auto", "cpu", "cuda"])
     args = p.parse_args(argv)
     cfg = config_from_args(QueryConfig, args, {"max_points": args.max_points, "device": args.device})
-    logging.basicConfig(level=cfg.log_level, format="%(asctime)s query %(levelname)s %(message)s")
-    stop = threading.Event()
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(sig, lambda *_: stop.set())
+    stop = service_setup(cfg, "query")
     main(cfg, stop)
 
 

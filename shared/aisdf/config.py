@@ -196,6 +196,19 @@ def overrides_from_args(args: argparse.Namespace, extra: Mapping[str, Any] | Non
     return out
 
 
+def service_setup(cfg: ServiceConfig, name: str):
+    """Logging for a service process and a stop event set by SIGINT/SIGTERM."""
+    import logging
+    import signal
+    import threading
+
+    logging.basicConfig(level=cfg.log_level, format=f"%(asctime)s {name} %(levelname)s %(message)s")
+    stop = threading.Event()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, lambda *_: stop.set())
+    return stop
+
+
 def config_from_args(model: type[C], args: argparse.Namespace, extra: Mapping[str, Any] | None = None) -> C:
     """Resolve a service config from parsed arguments; exits with a clear message if invalid."""
     from pydantic import ValidationError
