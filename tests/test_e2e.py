@@ -123,7 +123,9 @@ def test_stranger_client_maps_a_scene_the_project_never_saw():
         try:
             wait_for(lambda: sc.request(s, f"{NS}/query/sdf", good_request(), 2.0)[0] == "err", 60,
                      what="the query service")
-            time.sleep(2.0)  # the mapper's subscriber
+            # The mapper declares its keyframe subscriber before its info queryable: once
+            # info answers, a keyframe put from here reaches it.
+            wait_for(lambda: sc.request(s, f"{NS}/info/mapper", {"v": 1}, 2.0)[0] == "ok", 60, what="the mapper")
             bad = sc.keyframe_payload(999, 0.0, room.render(poses[0], K, H, W), K, np.diag([2.0, 2, 2, 1]))
             s.put(f"{NS}/keyframes", bad, encoding=sc.ENC)
             for i, T in enumerate(poses):
