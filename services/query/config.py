@@ -20,3 +20,10 @@ class QueryConfig(ServiceConfig):
     mesh_resolution: float = Field(0.05, gt=0, description="default marching-cubes voxel size (m)")
     mesh_max_cells: int = Field(16_000_000, ge=1, description="largest marching-cubes grid; above it: too_large")
     weights_retry_s: float = Field(2.0, gt=0, description="how often to ask for the latest map until one arrives")
+    # Protocol 1.1: the baked field and load shedding.
+    bake: bool = Field(True, description="bake the fused field of every new map and answer fused requests from it")
+    bake_block: float = Field(0.2, gt=0, description="baked field: block edge and coarse spacing (m)")
+    bake_fine: int = Field(4, ge=1, le=16, description="baked field: fine cells per block edge near surfaces")
+    bake_band: float = Field(0.05, ge=0, description="baked field: extra margin (m) of the near-surface test")
+    workers: int = Field(2, ge=1, le=64, description="threads evaluating sdf requests")
+    queue_max: int = Field(32, ge=1, description="sdf requests waiting; beyond, an immediate 'busy' error reply")

@@ -4,21 +4,35 @@ directly.
 
 A new map is built completely aside and then swapped in with one reference
 assignment, so a request always sees one consistent map.
+
+The baked field (``aisdf.baked``): for every new map (weights or surfels), a background
+thread bakes the fused field over the observed space the mapper published; the finished
+bake is swapped in atomically. ``fused`` requests are answered from the newest bake
+(points outside it: the network of the same map, so one reply is one map version); until
+a map's first bake is ready, and for ``exact`` requests or the other sources, from the
+network of the newest map.
+
+Maps are ordered by ``(epoch, version)``: a restarted mapper (a new epoch) replaces the
+map of the one that crashed even though its version counter restarted lower.
 """
 
 from __future__ import annotations
 
 import logging
 import threading
-from dataclasses import dataclass
+import time
+from collections import deque
+from dataclasses import dataclass, field
 
 import numpy as np
 import torch
 
 from aisdf import protocol
+from aisdf.baked import BakeConfig, BakedField, bake
 from aisdf.collision import chomp_cost
 from aisdf.fusion import fuse
 from aisdf.network import build_model, load_numpy_state
+from aisdf.observed import ObservedGrid
 from aisdf.surfel_types import Surfels
 
 log = logging.getLogger(__name__)
@@ -38,25 +52,51 @@ class MapState:
     bounds: np.ndarray | None  # (2, 3) world AABB of what was observed, when the mapper sent it
     surfels: Surfels | None
     surfel_version: int
+    epoch: int = 0  # the mapper incarnation: maps order by (epoch, version)
+    observed: ObservedGrid | None = None  # observed space, when the mapper sent it (protocol 1.1)
+    received: float = field(default_factory=time.monotonic)  # when these weights arrived
+
+    @property
+    def order(self) -> tuple[int, int]:
+        return (self.epoch, self.version)
+
+
+@dataclass(frozen=True)
+class BakedMap:
+    state: MapState  # the map it was baked from (its network answers points outside the bake)
+    field: BakedField
+    ready: float  # time.monotonic() when it was swapped in
 
 
 class QueryEngine:
     def __init__(self, max_points: int = 1_000_000, chunk_points: int = 65_536, device: str = "auto",
-                 fuse_radius: float = 0.5, mesh_resolution: float = 0.05, mesh_max_cells: int = 16_000_000):
+                 fuse_radius: float = 0.5, mesh_resolution: float = 0.05, mesh_max_cells: int = 16_000_000,
+                 bake: bool = True, bake_config: BakeConfig | None = None):
         self.max_points = max_points
         self.chunk_points = chunk_points
         self.device = pick_device(device)
         self.fuse_radius = fuse_radius
         self.mesh_resolution = mesh_resolution
         self.mesh_max_cells = mesh_max_cells
+        self.bake_enabled = bake
+        self.bake_config = bake_config or BakeConfig()
         self._state: MapState | None = None
-        self._surfels: tuple[int, Surfels] | None = None
+        self._surfels: tuple[tuple[int, int], Surfels] | None = None
+        self._baked: BakedMap | None = None
         self._lock = threading.Lock()  # serialises writers only; readers take the reference
+        self._bake_wanted = threading.Event()
+        self._stop = threading.Event()
+        self._baker: threading.Thread | None = None
+        self.bakes = 0
+        self.bake_failures = 0
+        self.last_bake: dict = {}
+        self._arrivals: deque = deque(maxlen=256)  # ((epoch, version), monotonic arrival) of weights
 
     @classmethod
     def from_config(cls, cfg) -> "QueryEngine":
         return cls(cfg.max_points, cfg.chunk_points, cfg.device, cfg.fuse_radius, cfg.mesh_resolution,
-                   cfg.mesh_max_cells)
+                   cfg.mesh_max_cells, cfg.bake, BakeConfig(block=cfg.bake_block, fine=cfg.bake_fine,
+                                                            band=cfg.bake_band))
 
     # ------------------------------------------------------------------ map updates
 
@@ -64,11 +104,16 @@ class QueryEngine:
     def state(self) -> MapState | None:
         return self._state
 
+    @property
+    def baked(self) -> BakedMap | None:
+        return self._baked
+
     def set_weights(self, snap: protocol.WeightSnapshot) -> bool:
-        """Build the network of a snapshot and swap it in; False if it is not newer.
-        Raises ValueError on a snapshot that cannot be loaded (the old map stays)."""
+        """Build the network of a snapshot and swap it in; False if it is not newer (by
+        (epoch, version)). Raises ValueError on a snapshot that cannot be loaded (the old map stays)."""
+        order = (snap.epoch, snap.version)
         cur = self._state
-        if cur is not None and snap.version <= cur.version:
+        if cur is not None and order <= cur.order:
             return False
         net = build_model(snap.model)
         load_numpy_state(net, snap.state)
@@ -77,24 +122,109 @@ class QueryEngine:
             p.requires_grad_(False)
         bounds = snap.model.get("bounds")
         bounds = np.asarray(bounds, dtype=np.float64).reshape(2, 3) if bounds is not None else None
+        observed = None
+        if snap.observed is not None:
+            try:
+                observed = ObservedGrid.from_msg(snap.observed)
+            except protocol.ProtocolError as e:
+                raise ValueError(f"observed space: {e.message}") from None
         with self._lock:
             cur = self._state
-            if cur is not None and snap.version <= cur.version:
+            if cur is not None and order <= cur.order:
                 return False
-            sv, surf = self._surfels if self._surfels else (-1, None)
-            self._state = MapState(snap.version, snap.step, net, bounds, surf, sv)
+            sv, surf = self._surfels if self._surfels else ((0, -1), None)
+            if sv[0] < snap.epoch:  # surfels of an older mapper incarnation: not this map's
+                surf, sv = None, (0, -1)
+            self._state = MapState(snap.version, snap.step, net, bounds, surf, sv[1], snap.epoch, observed)
+            self._arrivals.append((order, self._state.received))
+        self._bake_wanted.set()
         return True
 
     def set_surfels(self, smap: protocol.SurfelMap) -> bool:
-        if self._surfels is not None and smap.version <= self._surfels[0]:
+        order = (smap.epoch, smap.version)
+        if self._surfels is not None and order <= self._surfels[0]:
             return False
         surf = Surfels.from_protocol_dict(smap.surfels)
         with self._lock:
-            self._surfels = (smap.version, surf)
+            self._surfels = (order, surf)
             cur = self._state
-            if cur is not None:
-                self._state = MapState(cur.version, cur.step, cur.net, cur.bounds, surf, smap.version)
+            if cur is not None and cur.epoch <= smap.epoch:
+                self._state = MapState(cur.version, cur.step, cur.net, cur.bounds, surf, smap.version, cur.epoch,
+                                       cur.observed, cur.received)
+        self._bake_wanted.set()
         return True
+
+    # ------------------------------------------------------------------ baking
+
+    def fused_fn(self, state: MapState):
+        """points (M, 3) -> (sdf, grad) of the fused field of ``state`` (what ``fused`` answers)."""
+        has_surfels = state.surfels is not None and len(state.surfels) > 0
+
+        def fn(pts: np.ndarray):
+            sdf, grad = self._implicit(state.net, pts, True)
+            if has_surfels:
+                d_e, g_e = self._explicit(state.surfels, pts)
+                sdf, grad, _ = fuse(sdf, grad, d_e, g_e, self.fuse_radius)
+            return sdf, grad
+
+        return fn
+
+    def bake_now(self) -> BakedMap | None:
+        """Bake the newest map (if it has observed space and is not baked yet) and swap it in."""
+        st = self._state
+        if st is None or st.observed is None:
+            return self._baked
+        cur = self._baked
+        if cur is not None and cur.state.order == st.order and cur.state.surfel_version == st.surfel_version:
+            return cur
+        t = time.perf_counter()
+        fld = bake(self.fused_fn(st), st.observed, self.bake_config)
+        with self._lock:
+            cur = self._baked
+            if cur is None or cur.state.order <= st.order:
+                self._baked = BakedMap(st, fld, time.monotonic())
+        self.bakes += 1
+        self.last_bake = {**fld.stats, "wall_s": round(time.perf_counter() - t, 3), "version": st.version,
+                          "epoch": st.epoch}
+        log.info("baked map version %d: %d blocks (%d fine), %d evaluations, %.2f s, %.1f MB", st.version,
+                 fld.stats["blocks"], fld.stats["fine_blocks"], fld.stats["evaluations"], self.last_bake["wall_s"],
+                 fld.nbytes / 1e6)
+        return self._baked
+
+    def _bake_loop(self) -> None:
+        while not self._stop.is_set():
+            if not self._bake_wanted.wait(0.5):
+                continue
+            self._bake_wanted.clear()
+            try:
+                self.bake_now()
+            except Exception:  # noqa: BLE001 - keep answering from the last good bake / the network
+                self.bake_failures += 1
+                log.exception("bake failed; answers keep coming from the previous bake or the network")
+
+    def start(self) -> None:
+        """Start the background baker (no-op when baking is off)."""
+        if self.bake_enabled and self._baker is None:
+            self._baker = threading.Thread(target=self._bake_loop, name="baker", daemon=True)
+            self._baker.start()
+
+    def stop(self) -> None:
+        self._stop.set()
+        if self._baker is not None:
+            self._baker.join(timeout=30)
+
+    def lag(self) -> dict:
+        """How far answers trail the newest weights, now: ``versions`` behind, and ``behind_s``:
+        seconds since the first weights newer than the answering ones arrived (0 when the
+        newest map answers)."""
+        st, bk = self._state, self._baked
+        if st is None:
+            return {"versions": 0, "behind_s": 0.0}
+        if bk is None or bk.state.order >= st.order:
+            return {"versions": 0, "behind_s": 0.0}
+        newer = [(o, t) for o, t in list(self._arrivals) if o > bk.state.order]
+        first = min(t for _, t in newer) if newer else st.received
+        return {"versions": len(newer), "behind_s": round(time.monotonic() - first, 3)}
 
     # ------------------------------------------------------------------ evaluation
 
@@ -121,27 +251,52 @@ class QueryEngine:
         d, g, _ = explicit_sdf(pts.astype(np.float64), surfels)
         return d.astype(np.float32), g.astype(np.float32)
 
+    def _network_answer(self, state: MapState, pts: np.ndarray, source: str, gradient: bool):
+        has_surfels = state.surfels is not None and len(state.surfels) > 0
+        if source == "explicit":
+            if not has_surfels:
+                raise protocol.ProtocolError("no_map", "no explicit planar map yet (no surfels published)")
+            return self._explicit(state.surfels, pts)
+        sdf, grad = self._implicit(state.net, pts, gradient)
+        if source == "fused" and has_surfels:
+            d_e, g_e = self._explicit(state.surfels, pts)
+            sdf, grad, _ = fuse(sdf, grad, d_e, g_e, self.fuse_radius)
+        return sdf, grad
+
     def answer_sdf(self, req: protocol.SdfRequest) -> protocol.SdfReply:
-        state = self._state
-        if state is None:
+        newest = self._state
+        if newest is None:
             raise protocol.ProtocolError("no_map", "no map yet: the mapper has not published weights")
         if len(req.points) > self.max_points:
             raise protocol.ProtocolError("too_large", f"{len(req.points)} points exceed the limit {self.max_points}")
         pts = req.points
-        has_surfels = state.surfels is not None and len(state.surfels) > 0
-        if req.source == "explicit":
-            if not has_surfels:
-                raise protocol.ProtocolError("no_map", "no explicit planar map yet (no surfels published)")
-            sdf, grad = self._explicit(state.surfels, pts)
+        bk = self._baked
+        if req.source == "fused" and not req.exact and bk is not None:
+            state = bk.state
+            sdf, grad, covered = bk.field.query(pts, req.gradient)
+            if not covered.all():  # outside the bake: the network of the same map
+                out = ~covered
+                s2, g2 = self._network_answer(state, np.asarray(pts)[out], "fused", req.gradient)
+                sdf[out] = s2
+                if req.gradient:
+                    grad[out] = g2
+            baked = True
         else:
-            sdf, grad = self._implicit(state.net, pts, req.gradient)
-            if req.source == "fused" and has_surfels:
-                d_e, g_e = self._explicit(state.surfels, pts)
-                sdf, grad, _ = fuse(sdf, grad, d_e, g_e, self.fuse_radius)
+            state = newest
+            sdf, grad = self._network_answer(state, pts, req.source, req.gradient)
+            baked = False
+        if req.radii is not None:
+            sdf = sdf - req.radii.astype(np.float32)
         coll = None
         if req.collision_epsilon is not None:
             coll = chomp_cost(sdf, req.collision_epsilon).astype(np.float32)
-        return protocol.SdfReply(state.version, sdf.astype(np.float32), grad if req.gradient else None, coll)
+        observed = None
+        if req.observed:
+            # No observed space from the mapper (a 1.0 mapper): nothing is known to be seen.
+            observed = state.observed.contains(pts) if state.observed is not None else np.zeros(len(pts), bool)
+        return protocol.SdfReply(state.version, sdf.astype(np.float32, copy=False),
+                                 grad.astype(np.float32, copy=False) if req.gradient else None, coll, observed,
+                                 baked, state.epoch)
 
     def answer_mesh(self, req: protocol.MeshRequest) -> protocol.MeshReply:
         from skimage.measure import marching_cubes

@@ -3,7 +3,10 @@
 It asks for the latest snapshot at start (and again until one arrives) and follows
 new ones, so the order in which services start does not matter. Requests are
 checked on Zenoh's thread (a malformed one is answered at once) and evaluated on
-worker threads; a bad request never stops the service.
+``workers`` threads; a bad request never stops the service. The sdf queue is bounded
+(``queue_max``): a request that finds it full is answered at once with ``busy``, so
+under overload latency stays bounded and planners hear about it instead of timing out.
+A background thread bakes every new map (``engine.py``).
 """
 
 from __future__ import annotations
@@ -24,6 +27,7 @@ from .config import QueryConfig
 from .engine import QueryEngine
 
 log = logging.getLogger("aisdf.query")
+INFO_KEY = "info/query"
 
 
 class QueryNode:
@@ -36,11 +40,14 @@ class QueryNode:
         self.ns = cfg.namespace
         self.answered = 0
         self.errors = 0
-        self._sdf_jobs: queue.Queue = queue.Queue()
-        self._mesh_jobs: queue.Queue = queue.Queue()
+        self.busy = 0
+        self._sdf_jobs: queue.Queue = queue.Queue(maxsize=cfg.queue_max)
+        self._mesh_jobs: queue.Queue = queue.Queue(maxsize=4)
         self._stop = threading.Event()
         self._threads = [
-            threading.Thread(target=self._work, args=(self._sdf_jobs,), name="sdf-worker", daemon=True),
+            threading.Thread(target=self._work, args=(self._sdf_jobs,), name=f"sdf-worker-{i}", daemon=True)
+            for i in range(cfg.workers)
+        ] + [
             threading.Thread(target=self._work, args=(self._mesh_jobs,), name="mesh-worker", daemon=True),
             threading.Thread(target=self._fetch_latest, name="latest", daemon=True),
         ]
@@ -104,7 +111,14 @@ class QueryNode:
             log.exception("internal error decoding a request")
             self._reply_err(q, protocol.ProtocolError("internal", f"{type(e).__name__}: {e}"))
             return
-        jobs.put((q, req))
+        try:
+            jobs.put_nowait((q, req))
+        except queue.Full:
+            self.busy += 1
+            if self.busy == 1 or self.busy % 100 == 0:
+                log.warning("request queue full (%d waiting): answering busy (%d so far)", jobs.maxsize, self.busy)
+            self._reply_err(q, protocol.ProtocolError(
+                "busy", f"{jobs.maxsize} requests already waiting; retry later or send fewer/smaller requests"))
 
     def _work(self, jobs: queue.Queue) -> None:
         while True:
@@ -143,17 +157,42 @@ class QueryNode:
             self.session.declare_queryable(
                 keys.key(self.ns, keys.QUERY_MESH),
                 lambda q: self._accept(q, protocol.MeshRequest.from_msg, self._mesh_jobs)),
+            transport.serve(self.session, keys.key(self.ns, INFO_KEY), lambda _req: self.info(), allow_empty=True),
             self.session.liveliness().declare_token(keys.status_key(self.ns, "query", uuid.uuid4().hex[:8])),
         ]
         for t in self._threads:
             t.start()
+        self.engine.start()
+
+    def info(self) -> dict:
+        st, bk = self.engine.state, self.engine.baked
+        return {"v": protocol.VERSION, "version": st.version if st else None, "epoch": st.epoch if st else None,
+                "baked_version": bk.state.version if bk else None, "bakes": self.engine.bakes,
+                "bake_failures": self.engine.bake_failures, "last_bake": self.engine.last_bake,
+                "lag": self.engine.lag(), "answered": self.answered, "errors": self.errors, "busy": self.busy,
+                "queued": self._sdf_jobs.qsize()}
 
     def stop(self) -> None:
         self._stop.set()
         for d in self._decls:
             d.undeclare()
-        self._sdf_jobs.put(None)
-        self._mesh_jobs.put(None)
+        self.engine.stop()
+        for _ in range(self.cfg.workers):
+            self._drain_put(self._sdf_jobs)
+        self._drain_put(self._mesh_jobs)
+
+    @staticmethod
+    def _drain_put(jobs: queue.Queue) -> None:
+        """Queue the stop marker, dropping waiting jobs if the queue is full."""
+        while True:
+            try:
+                jobs.put_nowait(None)
+                return
+            except queue.Full:
+                try:
+                    jobs.get_nowait()
+                except queue.Empty:
+                    pass
 
 
 def main(cfg: QueryConfig, stop: threading.Event | None = None) -> None:
@@ -168,9 +207,9 @@ def main(cfg: QueryConfig, stop: threading.Event | None = None) -> None:
         last = time.monotonic()
         while not stop.wait(0.5):
             if time.monotonic() - last > 10:
-                st = node.engine.state
-                log.info("map version %s, %d answered, %d errors", st.version if st else None, node.answered,
-                         node.errors)
+                i = node.info()
+                log.info("map version %s (baked %s, lag %s), %d answered, %d errors, %d busy", i["version"],
+                         i["baked_version"], i["lag"], node.answered, node.errors, node.busy)
                 last = time.monotonic()
         node.stop()
 

@@ -4,9 +4,10 @@
     with SdfClient(namespace="aisdf", connect=["tcp/10.0.0.5:7447"]) as c:
         r = c.query(points_W, gradient=True, collision_epsilon=0.3)
         r.sdf, r.gradient, r.collision, r.map_version
+        r = c.query(centres, radii=radii, observed=True)   # spheres; r.observed per point
 
 Protocol errors come back as :class:`aisdf.protocol.ProtocolError` with ``.code``
-(``bad_request``, ``too_large``, ``no_map``, ``internal``).
+(``bad_request``, ``too_large``, ``no_map``, ``internal``, ``busy``).
 """
 
 from __future__ import annotations
@@ -59,8 +60,16 @@ class SdfClient:
         gradient: bool = False,
         collision_epsilon: float | None = None,
         source: str = "fused",
+        radii: np.ndarray | None = None,
+        observed: bool = False,
+        exact: bool = False,
     ) -> protocol.SdfReply:
         """Signed distances (and optionally gradients and CHOMP costs) of (N, 3) points.
+
+        ``radii`` (N,): the points are sphere centres and distances (and costs) are those of
+        the spheres' surfaces. ``observed``: also return per point whether any keyframe has
+        seen that space (treat False as occupied for safe planning). ``exact``: the
+        network's answer instead of the baked field's.
 
         With ``max_batch`` set, larger inputs are split into several requests and the
         replies concatenated (map_version is the smallest one seen)."""
@@ -69,16 +78,23 @@ class SdfClient:
             raise ValueError(f"points must be (N, 3), got {pts.shape}")
         if pts.dtype != np.float64:
             pts = pts.astype(np.float32)
+        if radii is not None:
+            radii = np.asarray(radii)
+            if radii.shape != (len(pts),):
+                raise ValueError(f"radii must be ({len(pts)},), got {radii.shape}")
         step = self.max_batch or max(len(pts), 1)
         parts = []
         for i in range(0, max(len(pts), 1), step):
-            req = protocol.SdfRequest(pts[i:i + step], gradient, collision_epsilon, source)
+            req = protocol.SdfRequest(pts[i:i + step], gradient, collision_epsilon, source,
+                                      None if radii is None else radii[i:i + step], observed, exact)
             parts.append(protocol.SdfReply.from_msg(transport.query(self._session, self._key(keys.QUERY_SDF),
                                                                     req.to_msg(), self.timeout)))
         if len(parts) == 1:
             return parts[0]
         cat = lambda name: None if getattr(parts[0], name) is None else np.concatenate([getattr(p, name) for p in parts])  # noqa: E731
-        return protocol.SdfReply(min(p.map_version for p in parts), cat("sdf"), cat("gradient"), cat("collision"))
+        first = min(parts, key=lambda p: (p.map_epoch, p.map_version))
+        return protocol.SdfReply(first.map_version, cat("sdf"), cat("gradient"), cat("collision"), cat("observed"),
+                                 all(p.baked for p in parts), first.map_epoch)
 
     def sdf(self, points_W: np.ndarray, source: str = "fused") -> np.ndarray:
         return self.query(points_W, source=source).sdf

@@ -14,7 +14,7 @@ import numpy as np
 
 VERSION = 1
 ENCODING = "application/msgpack"
-ERROR_CODES = ("bad_request", "too_large", "no_map", "internal")
+ERROR_CODES = ("bad_request", "too_large", "no_map", "internal", "busy")  # busy: protocol 1.1
 SDF_SOURCES = ("fused", "implicit", "explicit")
 # numpy dtype strings with explicit byte order that the protocol allows.
 ALLOWED_DTYPES = ("<f4", "<f8", "<u2", "<i4", "<i8", "|u1")

@@ -20,6 +20,7 @@ from . import protocol
 from .mapping.frames import Frame
 from .mapping.presets import training_config
 from .mapping.trainer import Trainer
+from .observed import ObservedSpace
 from .surfel_types import Surfels
 
 MIN_VALID_PIXELS = 64
@@ -44,6 +45,7 @@ class MappingPipeline:
         self._pending_timings: dict[str, float] = {}
         self._bounds: np.ndarray | None = None
         self.last_ids: set[int] = set()
+        self.observed = ObservedSpace()
 
     @classmethod
     def from_settings(cls, preset: str = "auto", training: dict[str, Any] | None = None, atlanta: bool = True,
@@ -86,6 +88,9 @@ class MappingPipeline:
                 self._timings[k].append(v)
         self.trainer.add_keyframe(frame)
         self._grow_bounds(frame)
+        t = time.perf_counter()
+        self.observed.add(depth, frame.K, frame.T_WC, self.trainer.cfg.max_depth)
+        self._timings["observed"].append(1e3 * (time.perf_counter() - t))
 
     def _grow_bounds(self, frame: Frame) -> None:
         from .geometry import backproject, transform
@@ -130,7 +135,9 @@ class MappingPipeline:
         model = dict(self.trainer.model_spec())
         if self._bounds is not None:
             model["bounds"] = self._bounds.tolist()
-        return protocol.WeightSnapshot(version, self.steps, time.time(), model, self.trainer.state_numpy())
+        grid = self.observed.grid()
+        return protocol.WeightSnapshot(version, self.steps, time.time(), model, self.trainer.state_numpy(),
+                                       observed=None if grid is None else grid.to_msg())
 
     def surfels(self) -> Surfels | None:
         return None if self.structure is None else self.structure.global_surfels()
@@ -152,11 +159,17 @@ class MappingPipeline:
     def checkpoint(self) -> dict:
         return {"trainer": self.trainer.checkpoint(), "atlanta": self.atlanta_on,
                 "structure": None if self.structure is None else self.structure.state_dict(),
-                "bounds": None if self._bounds is None else self._bounds.tolist()}
+                "bounds": None if self._bounds is None else self._bounds.tolist(),
+                "observed": self.observed.state_dict()}
 
     @classmethod
     def restore(cls, d: dict) -> "MappingPipeline":
         p = cls(Trainer.from_checkpoint(d["trainer"]), atlanta=d["atlanta"], atlanta_state=d.get("structure"))
         if d.get("bounds") is not None:
             p._bounds = np.asarray(d["bounds"])
+        if d.get("observed") is not None:
+            p.observed.load_state_dict(d["observed"])
+        else:  # a checkpoint from before observed space: rebuild it from the kept keyframes
+            for f in p.trainer.keyframes:
+                p.observed.add(f.depth, f.K, f.T_WC, p.trainer.cfg.max_depth)
         return p

@@ -113,9 +113,11 @@ class WeightSnapshot:
     stamp: float
     model: dict
     state: dict[str, np.ndarray]
+    epoch: int = 0  # protocol 1.2: the mapper incarnation; maps order by (epoch, version)
+    observed: dict | None = None  # protocol 1.1: the observed-space grid (aisdf.observed)
 
     def to_msg(self) -> dict:
-        return {
+        msg = {
             "v": VERSION,
             "version": int(self.version),
             "step": int(self.step),
@@ -123,6 +125,11 @@ class WeightSnapshot:
             "model": self.model,
             "state": {k: encode_array(np.asarray(v, dtype=np.float32)) for k, v in self.state.items()},
         }
+        if self.epoch:
+            msg["epoch"] = int(self.epoch)
+        if self.observed is not None:
+            msg["observed"] = self.observed
+        return msg
 
     @classmethod
     def from_msg(cls, msg: Mapping) -> "WeightSnapshot":
@@ -136,7 +143,9 @@ class WeightSnapshot:
             if not isinstance(k, str):
                 raise _bad("state keys must be strings")
             state[k] = decode_array(v, f"state.{k}", ("<f4", "<f8"))
-        return cls(version, step, stamp, model, state)
+        epoch = _get(msg, "epoch", int, 0, "an integer")
+        observed = _get(msg, "observed", dict, None, "a map")
+        return cls(version, step, stamp, model, state, epoch, observed)
 
 
 SURFEL_FIELDS = {
@@ -159,6 +168,7 @@ class SurfelMap:
     vertical: np.ndarray  # (3,)
     horizontal: np.ndarray  # (M, 3)
     surfels: dict[str, np.ndarray] = field(default_factory=dict)
+    epoch: int = 0  # protocol 1.2: the mapper incarnation; maps order by (epoch, version)
 
     @staticmethod
     def empty_surfels() -> dict[str, np.ndarray]:
@@ -172,7 +182,7 @@ class SurfelMap:
 
     def to_msg(self) -> dict:
         surfels = self.surfels or self.empty_surfels()
-        return {
+        msg = {
             "v": VERSION,
             "version": int(self.version),
             "stamp": float(self.stamp),
@@ -182,6 +192,9 @@ class SurfelMap:
             },
             "surfels": {k: encode_array(surfels[k], dt) for k, (dt, _) in SURFEL_FIELDS.items()},
         }
+        if self.epoch:
+            msg["epoch"] = int(self.epoch)
+        return msg
 
     @classmethod
     def from_msg(cls, msg: Mapping) -> "SurfelMap":
@@ -197,7 +210,9 @@ class SurfelMap:
         n = {len(v) for v in surfels.values()}
         if len(n) != 1:
             raise _bad("surfel arrays have different lengths")
-        return cls(version, stamp, vertical.copy(), horizontal.copy(), {k: v.copy() for k, v in surfels.items()})
+        epoch = _get(msg, "epoch", int, 0, "an integer")
+        return cls(version, stamp, vertical.copy(), horizontal.copy(), {k: v.copy() for k, v in surfels.items()},
+                   epoch)
 
 
 @dataclass
@@ -206,6 +221,10 @@ class SdfRequest:
     gradient: bool = False
     collision_epsilon: float | None = None
     source: str = "fused"
+    # protocol 1.1 (optional; a 1.0 service ignores them):
+    radii: np.ndarray | None = None  # (N,) sphere radii: distances are to the sphere's surface
+    observed: bool = False  # also answer, per point, whether any keyframe has seen that space
+    exact: bool = False  # evaluate the network now instead of the baked field
 
     def to_msg(self) -> dict:
         pts = np.asarray(self.points)
@@ -214,6 +233,13 @@ class SdfRequest:
         msg = {"v": VERSION, "points": encode_array(pts), "gradient": bool(self.gradient), "source": self.source}
         if self.collision_epsilon is not None:
             msg["collision_epsilon"] = float(self.collision_epsilon)
+        if self.radii is not None:
+            r = np.asarray(self.radii)
+            msg["radii"] = encode_array(r if r.dtype == np.float64 else r.astype(np.float32))
+        if self.observed:
+            msg["observed"] = True
+        if self.exact:
+            msg["exact"] = True
         return msg
 
     @classmethod
@@ -233,7 +259,14 @@ class SdfRequest:
         source = _get(msg, "source", str, "fused", "a string")
         if source not in SDF_SOURCES:
             raise _bad(f"'source' must be one of {list(SDF_SOURCES)}, got {source!r}")
-        return cls(points, gradient, eps, source)
+        radii = None
+        if msg.get("radii") is not None:
+            radii = decode_array(msg.get("radii"), "radii", ("<f4", "<f8"), (len(points),))
+            if not np.all(np.isfinite(radii)) or (len(radii) and radii.min() < 0):
+                raise _bad("'radii' must be finite and non-negative")
+        observed = _get(msg, "observed", bool, False, "a boolean")
+        exact = _get(msg, "exact", bool, False, "a boolean")
+        return cls(points, gradient, eps, source, radii, observed, exact)
 
 
 @dataclass
@@ -242,13 +275,20 @@ class SdfReply:
     sdf: np.ndarray
     gradient: np.ndarray | None = None
     collision: np.ndarray | None = None
+    # protocol 1.1 / 1.2 (a 1.0 client ignores them):
+    observed: np.ndarray | None = None  # (N,) bool, when asked
+    baked: bool = False  # True when the baked field answered (points outside it: the network of the same map)
+    map_epoch: int = 0  # the mapper incarnation of map_version (1.2)
 
     def to_msg(self) -> dict:
-        msg = {"v": VERSION, "map_version": int(self.map_version), "sdf": encode_array(self.sdf, "<f4")}
+        msg = {"v": VERSION, "map_version": int(self.map_version), "sdf": encode_array(self.sdf, "<f4"),
+               "map_epoch": int(self.map_epoch), "baked": bool(self.baked)}
         if self.gradient is not None:
             msg["gradient"] = encode_array(self.gradient, "<f4")
         if self.collision is not None:
             msg["collision"] = encode_array(self.collision, "<f4")
+        if self.observed is not None:
+            msg["observed"] = encode_array(np.asarray(self.observed, dtype=np.uint8), "|u1")
         return msg
 
     @classmethod
@@ -258,7 +298,10 @@ class SdfReply:
         n = len(sdf)
         grad = decode_array(msg["gradient"], "gradient", ("<f4",), (n, 3)) if "gradient" in msg else None
         coll = decode_array(msg["collision"], "collision", ("<f4",), (n,)) if "collision" in msg else None
-        return cls(mv, sdf, grad, coll)
+        obs = decode_array(msg["observed"], "observed", ("|u1",), (n,)).astype(bool) if "observed" in msg else None
+        baked = _get(msg, "baked", bool, False, "a boolean")
+        epoch = _get(msg, "map_epoch", int, 0, "an integer")
+        return cls(mv, sdf, grad, coll, obs, baked, epoch)
 
 
 @dataclass
@@ -299,3 +342,34 @@ class MeshReply:
         v = decode_array(msg.get("vertices"), "vertices", ("<f4",), (None, 3))
         f = decode_array(msg.get("faces"), "faces", ("<i4",), (None, 3))
         return cls(mv, v, f)
+
+
+def _int_list(msg: Mapping, name: str) -> list[int]:
+    vals = _get(msg, name, (list, tuple), [], "a list of integers")
+    if not all(isinstance(x, int) and not isinstance(x, bool) for x in vals):
+        raise _bad(f"'{name}' must be a list of integers")
+    return [int(x) for x in vals]
+
+
+@dataclass
+class KeyframeAck:
+    """Mapper -> front ends on ``keyframes/ack`` (protocol 1.2). The keyframes ``frame_ids``
+    of ``sensor`` are in the map (added now or before: a resend is acknowledged again and
+    not added twice) and, with a checkpoint directory, on disk; ``rejected`` ones were
+    refused for good (invalid). Neither is worth resending. A keyframe the mapper dropped
+    from its queue is not acknowledged. ``epoch`` is the mapper incarnation's."""
+
+    epoch: int
+    sensor: str
+    frame_ids: list[int] = field(default_factory=list)
+    rejected: list[int] = field(default_factory=list)
+
+    def to_msg(self) -> dict:
+        return {"v": VERSION, "epoch": int(self.epoch), "sensor": self.sensor,
+                "frame_ids": [int(i) for i in self.frame_ids], "rejected": [int(i) for i in self.rejected]}
+
+    @classmethod
+    def from_msg(cls, msg: Mapping) -> "KeyframeAck":
+        epoch = _get(msg, "epoch", int, 0, "an integer")
+        sensor = _get(msg, "sensor", str, "depth", "a string")
+        return cls(epoch, sensor, _int_list(msg, "frame_ids"), _int_list(msg, "rejected"))

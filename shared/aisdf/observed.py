@@ -1,0 +1,154 @@
+"""Observed space: which voxels any keyframe has seen, for planners that treat unknown
+space as occupied (as Voxblox users do) and for the query service's baked field, which
+covers exactly this space.
+
+A voxel is observed when a depth ray of a keyframe passes through it on its way to the
+measured surface, or lies within ``margin`` behind that surface (the surface itself is
+seen). Pixels without a measurement mark nothing: no return is no knowledge.
+
+The mapper keeps an :class:`ObservedSpace` (a sorted set of voxel keys; memory follows
+what was seen, not the building's box) and publishes it with each weight snapshot as an
+:class:`ObservedGrid` message (protocol 1.1, the ``observed`` field)::
+
+    {"origin": [x, y, z],          # world corner of voxel (0, 0, 0), metres
+     "voxel": float,               # edge length, metres
+     "shape": [nx, ny, nz],
+     "bits": array "|u1"}          # numpy.packbits of the C-order nx*ny*nz booleans (big-endian bits)
+
+Pure: arrays in, arrays out.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+
+import numpy as np
+
+from .codec import ProtocolError, _bad, decode_array, encode_array
+
+_OFF = 1 << 20  # voxel indices in [-2^20, 2^20) pack into 21 bits each
+_MASK = (1 << 21) - 1
+
+
+def pack_keys(ijk: np.ndarray) -> np.ndarray:
+    ijk = np.asarray(ijk, dtype=np.int64) + _OFF
+    return (ijk[..., 0] << 42) | (ijk[..., 1] << 21) | ijk[..., 2]
+
+
+def unpack_keys(keys: np.ndarray) -> np.ndarray:
+    keys = np.asarray(keys, dtype=np.int64)
+    return np.stack([(keys >> 42) & _MASK, (keys >> 21) & _MASK, keys & _MASK], axis=-1) - _OFF
+
+
+class ObservedSpace:
+    """The set of observed voxels, grown one depth image at a time."""
+
+    def __init__(self, voxel: float = 0.1, margin: float = 0.15, max_rays: int = 6000):
+        if voxel <= 0 or margin < 0:
+            raise ValueError("voxel must be positive and margin non-negative")
+        self.voxel = float(voxel)
+        self.margin = float(margin)
+        self.max_rays = int(max_rays)
+        self.keys = np.zeros(0, np.int64)  # sorted, unique
+
+    def __len__(self) -> int:
+        return len(self.keys)
+
+    def add(self, depth: np.ndarray, K: np.ndarray, T_WC: np.ndarray, max_depth: float = 12.0) -> int:
+        """Mark what one depth image (metres, 0 = none) saw; returns the number of new voxels."""
+        depth = np.asarray(depth, dtype=np.float64)
+        H, W = depth.shape
+        # Rays a little closer than a voxel apart at 4 m, and no more than max_rays of them.
+        stride = max(1, int(self.voxel * min(K[0, 0], K[1, 1]) / 4.0))
+        while (H // stride) * (W // stride) > self.max_rays:
+            stride += 1
+        v, u = np.mgrid[stride // 2:H:stride, stride // 2:W:stride]
+        d = depth[v, u]
+        ok = np.isfinite(d) & (d > 0) & (d <= max_depth)
+        u, v, d = u[ok], v[ok], d[ok]
+        if not len(d):
+            return 0
+        dirs = np.stack([(u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1], np.ones_like(d)], axis=-1)
+        norm = np.linalg.norm(dirs, axis=1)
+        length = d * norm + self.margin  # along the ray, to the surface and past it
+        dirs_W = (dirs / norm[:, None]) @ T_WC[:3, :3].T
+        step = 0.5 * self.voxel
+        n = np.ceil(length / step).astype(np.int64) + 1
+        ray = np.repeat(np.arange(len(d)), n)
+        first = np.cumsum(n) - n
+        s = (np.arange(len(ray)) - np.repeat(first, n)) * step
+        s = np.minimum(s, np.repeat(length, n))
+        pts = T_WC[:3, 3] + dirs_W[ray] * s[:, None]
+        new = np.unique(pack_keys(np.floor(pts / self.voxel).astype(np.int64)))
+        before = len(self.keys)
+        self.keys = np.union1d(self.keys, new)
+        return len(self.keys) - before
+
+    def contains(self, points: np.ndarray) -> np.ndarray:
+        """(N,) bool: is each world point in an observed voxel."""
+        if not len(self.keys):
+            return np.zeros(len(points), bool)
+        k = pack_keys(np.floor(np.asarray(points, np.float64) / self.voxel).astype(np.int64))
+        i = np.clip(np.searchsorted(self.keys, k), 0, len(self.keys) - 1)
+        return self.keys[i] == k
+
+    def grid(self) -> "ObservedGrid | None":
+        if not len(self.keys):
+            return None
+        ijk = unpack_keys(self.keys)
+        lo = ijk.min(0)
+        shape = tuple(int(x) for x in ijk.max(0) - lo + 1)
+        occ = np.zeros(shape, bool)
+        occ[tuple((ijk - lo).T)] = True
+        return ObservedGrid(lo * self.voxel, self.voxel, occ)
+
+    def state_dict(self) -> dict:
+        return {"voxel": self.voxel, "margin": self.margin, "keys": self.keys.copy()}
+
+    def load_state_dict(self, d: dict) -> None:
+        self.voxel, self.margin = float(d["voxel"]), float(d["margin"])
+        self.keys = np.asarray(d["keys"], np.int64)
+
+
+class ObservedGrid:
+    """A dense boolean voxel grid of observed space over its bounding box."""
+
+    def __init__(self, origin: np.ndarray, voxel: float, occ: np.ndarray):
+        self.origin = np.asarray(origin, np.float64).reshape(3)
+        self.voxel = float(voxel)
+        self.occ = np.asarray(occ, bool)
+
+    def contains(self, points: np.ndarray) -> np.ndarray:
+        idx = np.floor((np.asarray(points, np.float64) - self.origin) / self.voxel).astype(np.int64)
+        inside = np.all((idx >= 0) & (idx < np.array(self.occ.shape)), axis=1)
+        out = np.zeros(len(idx), bool)
+        i = idx[inside]
+        out[inside] = self.occ[i[:, 0], i[:, 1], i[:, 2]]
+        return out
+
+    @property
+    def bounds(self) -> np.ndarray:
+        """(2, 3) world box of the grid."""
+        return np.stack([self.origin, self.origin + self.voxel * np.array(self.occ.shape)])
+
+    def to_msg(self) -> dict:
+        return {"origin": [float(x) for x in self.origin], "voxel": self.voxel,
+                "shape": [int(x) for x in self.occ.shape],
+                "bits": encode_array(np.packbits(self.occ.ravel()), "|u1")}
+
+    @classmethod
+    def from_msg(cls, m: Mapping, max_cells: int = 500_000_000) -> "ObservedGrid":
+        try:
+            origin = np.asarray(m["origin"], np.float64).reshape(3)
+            voxel = float(m["voxel"])
+            shape = tuple(int(x) for x in m["shape"])
+        except (KeyError, TypeError, ValueError) as e:
+            raise _bad(f"observed grid: {e}") from None
+        if len(shape) != 3 or min(shape) < 1 or not voxel > 0 or not np.all(np.isfinite(origin)):
+            raise _bad("observed grid: needs a positive voxel, a finite origin and a 3-d shape")
+        n = int(np.prod(shape))
+        if n > max_cells:
+            raise ProtocolError("too_large", f"observed grid of {n} cells")
+        bits = decode_array(m.get("bits"), "observed.bits", ("|u1",), ((n + 7) // 8,))
+        occ = np.unpackbits(bits, count=n).astype(bool).reshape(shape)
+        return cls(origin, voxel, occ)
