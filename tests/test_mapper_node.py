@@ -19,6 +19,6 @@ def test_queue_is_bounded_and_bad_keyframes_are_counted():
         node.on_keyframe(payload(i))
     node.on_keyframe(b"\x00garbage")
     node.on_keyframe(payload(9, np.diag([1.0, 1, 2, 1])))
-    assert [k.frame_id for k in node.pending] == [3, 4]
-    assert node.counts == {"received": 7, "rejected": 2, "dropped": 3, "accepted": 0}
+    assert [k.frame_id for k, _ in node.pending] == [3, 4]
+    assert node.counts == {"received": 7, "rejected": 2, "dropped": 3, "accepted": 0, "duplicates": 0}
     assert node.pipeline.n_keyframes == 0  # nothing reached the map

@@ -6,6 +6,16 @@
   oldest waiting one is dropped, logged and counted, so memory stays bounded.
 * ``map/weights`` and ``map/surfels``: published every ``snapshot_period_s`` while
   training, and answered on ``get`` with the latest (late joiners).
+* ``keyframes/ack`` (protocol 1.2): once a keyframe is in the map (and, with a checkpoint
+  directory, in the journal on disk), or rejected for good, the mapper says so; front ends
+  resend what is not acknowledged. Keyframes are deduplicated by (sensor, frame_id), also
+  across restarts (the checkpoint and the journal remember them), so a resend is
+  acknowledged again and never added twice. A keyframe dropped from the queue is not
+  acknowledged: its sender resends it.
+* Every incarnation has an ``epoch`` (milliseconds since 1970 at start, above any earlier
+  incarnation's), put on every WeightSnapshot and SurfelMap: maps order by (epoch,
+  version). A resumed mapper also continues its versions above the highest it published
+  (kept in the checkpoint directory), so receivers that only know ``version`` take it too.
 * ``info/mapper`` (extension, not part of protocol v1): a map of counters and the
   per-module timings, for the demo and operators.
 """
@@ -27,10 +37,13 @@ from aisdf.config import add_common_args, config_from_args, service_setup
 from aisdf.pipeline import MappingPipeline
 
 from .config import MapperConfig
+from .journal import Incarnation, KeyframeJournal
 
 log = logging.getLogger("aisdf.mapper")
 INFO_KEY = "info/mapper"
 CHECKPOINT_NAME = "mapper-checkpoint.pt"
+JOURNAL_NAME = "mapper-journal.bin"
+INCARNATION_NAME = "mapper-incarnation.json"
 
 
 class MapperNode:
@@ -42,8 +55,14 @@ class MapperNode:
             cfg.preset, cfg.training, atlanta=cfg.atlanta, surfel_mask=cfg.surfel_mask, surfel_loss=cfg.surfel_loss)
         self.pending: collections.deque = collections.deque()
         self.lock = threading.Lock()
-        self.counts = {"received": 0, "rejected": 0, "dropped": 0, "accepted": 0}
+        self.counts = {"received": 0, "rejected": 0, "dropped": 0, "accepted": 0, "duplicates": 0}
         self.version = 0
+        self.epoch = 0
+        self.seen: set[tuple[str, int]] = set()  # (sensor, frame_id) in the map
+        self._seen_ids: set[int] = set()  # frame ids of a checkpoint older than 1.2 (no sensor kept)
+        d = Path(cfg.checkpoint_dir) if cfg.checkpoint_dir else None
+        self.journal = KeyframeJournal(d / JOURNAL_NAME) if d else None
+        self.incarnation = Incarnation(d / INCARNATION_NAME) if d else None
         self._latest_weights: bytes | None = None
         self._latest_surfels: bytes | None = None
         self._stop = threading.Event()
@@ -57,14 +76,54 @@ class MapperNode:
         return Path(self.cfg.checkpoint_dir) / CHECKPOINT_NAME if self.cfg.checkpoint_dir else None
 
     def _restore(self) -> None:
+        """Resume: the checkpoint, then the keyframes journaled after it; a fresh epoch."""
         path = self._ckpt_path()
-        if path is None or not path.exists():
+        last_epoch = 0
+        if path is not None and path.exists():
+            ck = torch.load(path, map_location="cpu", weights_only=False)
+            self.pipeline = MappingPipeline.restore(ck["pipeline"])
+            self.version = int(ck["version"])
+            last_epoch = int(ck.get("epoch", 0))
+            if "seen" in ck:
+                self.seen = {(str(s), int(i)) for s, i in ck["seen"]}
+            else:
+                self._seen_ids = {int(f.frame_id) for f in self.pipeline.trainer.keyframes}
+            log.info("resumed from %s: version %d, %d steps, %d keyframes", path, self.version, self.pipeline.steps,
+                     self.pipeline.n_keyframes)
+        if self.incarnation is not None:
+            last = self.incarnation.load()
+            last_epoch = max(last_epoch, last["epoch"])
+            self.version = max(self.version, last["version"])
+        self.epoch = max(int(time.time() * 1000), last_epoch + 1)
+        if self.incarnation is not None:
+            self.incarnation.save(self.epoch, self.version)
+        self._replay_journal()
+        log.info("epoch %d, next map version %d", self.epoch, self.version + 1)
+
+    def _replay_journal(self) -> None:
+        if self.journal is None:
             return
-        ck = torch.load(path, map_location="cpu", weights_only=False)
-        self.pipeline = MappingPipeline.restore(ck["pipeline"])
-        self.version = int(ck["version"])
-        log.info("resumed from %s: version %d, %d steps, %d keyframes", path, self.version, self.pipeline.steps,
-                 self.pipeline.n_keyframes)
+        n = 0
+        for payload in self.journal.read():
+            try:
+                kf = protocol.Keyframe.from_msg(protocol.unpack(payload))
+            except protocol.ProtocolError as e:
+                log.warning("journal: skipping an unreadable keyframe: %s", e.message)
+                continue
+            if self.is_seen(kf.sensor, kf.frame_id):
+                continue
+            try:
+                self.pipeline.add_keyframe(kf)
+            except ValueError as e:
+                log.warning("journal: keyframe %d not added again: %s", kf.frame_id, e)
+                continue
+            self.seen.add((kf.sensor, kf.frame_id))
+            n += 1
+        if n:
+            log.info("replayed %d keyframes from the journal %s", n, self.journal.path)
+
+    def is_seen(self, sensor: str, frame_id: int) -> bool:
+        return (sensor, frame_id) in self.seen or frame_id in self._seen_ids
 
     def save_checkpoint(self) -> None:
         path = self._ckpt_path()
@@ -72,42 +131,94 @@ class MapperNode:
             return
         path.parent.mkdir(parents=True, exist_ok=True)
         tmp = path.with_suffix(".tmp")
-        torch.save({"pipeline": self.pipeline.checkpoint(), "version": self.version}, tmp)
+        torch.save({"pipeline": self.pipeline.checkpoint(), "version": self.version, "epoch": self.epoch,
+                    "seen": sorted(self.seen)}, tmp)
         tmp.replace(path)
+        if self.journal is not None:
+            self.journal.clear()  # the checkpoint holds its keyframes now
 
     # ------------------------------------------------------------------ keyframes in
 
     def on_keyframe(self, payload: bytes) -> None:
         self.counts["received"] += 1
+        msg = None
         try:
-            kf = protocol.Keyframe.from_msg(protocol.unpack(payload))
+            msg = protocol.unpack(payload)
+            kf = protocol.Keyframe.from_msg(msg)
         except protocol.ProtocolError as e:
             self.counts["rejected"] += 1
             log.warning("rejected keyframe: %s", e.message)
+            ident = _identity(msg)
+            if ident is not None:  # refused for good: tell its sender not to resend it
+                self._ack(ident[0], rejected=[ident[1]])
             return
         with self.lock:
-            self.pending.append(kf)
-            if len(self.pending) > self.cfg.queue_max:
-                old = self.pending.popleft()
-                self.counts["dropped"] += 1
-                log.warning("dropped keyframe %d: %d waiting, training is slower than keyframes arrive "
-                            "(dropped so far: %d)", old.frame_id, self.cfg.queue_max, self.counts["dropped"])
+            if self.is_seen(kf.sensor, kf.frame_id):
+                self.counts["duplicates"] += 1
+                duplicate = True
+            else:
+                duplicate = False
+                self.pending.append((kf, payload))
+                if len(self.pending) > self.cfg.queue_max:
+                    old, _ = self.pending.popleft()
+                    self.counts["dropped"] += 1
+                    log.warning("dropped keyframe %d: %d waiting, training is slower than keyframes arrive; not "
+                                "acknowledged, its sender resends it (dropped so far: %d)", old.frame_id,
+                                self.cfg.queue_max, self.counts["dropped"])
+        if duplicate:  # already in the map: our acknowledgement was lost or late
+            log.debug("keyframe %s/%d is already in the map", kf.sensor, kf.frame_id)
+            self._ack(kf.sensor, [kf.frame_id])
+
+    def _ack(self, sensor: str, frame_ids=(), rejected=()) -> None:
+        if self.session is None:
+            return
+        transport.put(self.session, keys.key(self.ns, keys.KEYFRAMES_ACK),
+                      protocol.KeyframeAck(self.epoch, sensor, list(frame_ids), list(rejected)).to_msg())
 
     # ------------------------------------------------------------------ training
 
-    def _take_pending(self) -> list[protocol.Keyframe]:
+    def _take_pending(self) -> list[tuple[protocol.Keyframe, bytes]]:
         with self.lock:
             items = list(self.pending)
             self.pending.clear()
         return items
 
+    def _add_pending(self) -> None:
+        """Add the waiting keyframes to the map, journal them, acknowledge them."""
+        acks: dict[str, tuple[list, list]] = {}
+        for kf, payload in self._take_pending():
+            ok, bad = acks.setdefault(kf.sensor, ([], []))
+            if self.is_seen(kf.sensor, kf.frame_id):  # a resend that was waiting with its original
+                self.counts["duplicates"] += 1
+                ok.append(kf.frame_id)
+                continue
+            try:
+                self.pipeline.add_keyframe(kf)
+            except ValueError as e:
+                self.counts["rejected"] += 1
+                log.warning("rejected keyframe %d: %s", kf.frame_id, e)
+                bad.append(kf.frame_id)
+                continue
+            if self.journal is not None:
+                self.journal.append(payload)  # on disk before it is acknowledged
+            with self.lock:
+                self.seen.add((kf.sensor, kf.frame_id))
+            self.counts["accepted"] += 1
+            ok.append(kf.frame_id)
+        for sensor, (ok, bad) in acks.items():
+            self._ack(sensor, ok, bad)
+
     def _publish(self) -> None:
         self.version += 1
+        if self.incarnation is not None:  # before anyone can see this version
+            self.incarnation.save(self.epoch, self.version)
         snap = self.pipeline.weight_snapshot(self.version)
+        snap.epoch = self.epoch
         self._latest_weights = protocol.pack(snap.to_msg())
         self.session.put(keys.key(self.ns, keys.MAP_WEIGHTS), self._latest_weights, encoding=transport.ENCODING)
         smap = self.pipeline.surfel_map(self.version)
         if smap is not None:
+            smap.epoch = self.epoch
             self._latest_surfels = protocol.pack(smap.to_msg())
             self.session.put(keys.key(self.ns, keys.MAP_SURFELS), self._latest_surfels, encoding=transport.ENCODING)
 
@@ -115,13 +226,7 @@ class MapperNode:
         last_pub = last_ckpt = time.monotonic()
         dirty = False
         while not self._stop.is_set():
-            for kf in self._take_pending():
-                try:
-                    self.pipeline.add_keyframe(kf)
-                    self.counts["accepted"] += 1
-                except ValueError as e:
-                    self.counts["rejected"] += 1
-                    log.warning("rejected keyframe %d: %s", kf.frame_id, e)
+            self._add_pending()
             if self.pipeline.n_keyframes == 0:
                 self._stop.wait(self.cfg.idle_sleep_s)
                 continue
@@ -142,8 +247,9 @@ class MapperNode:
     # ------------------------------------------------------------------ queries
 
     def info(self) -> dict:
-        return {"v": protocol.VERSION, "version": self.version, "steps": self.pipeline.steps,
-                "keyframes": self.pipeline.n_keyframes, "pending": len(self.pending), **self.counts,
+        return {"v": protocol.VERSION, "version": self.version, "epoch": self.epoch, "steps": self.pipeline.steps,
+                "keyframes": self.pipeline.n_keyframes, "seen": len(self.seen) + len(self._seen_ids),
+                "pending": len(self.pending), **self.counts,
                 "stats": self.pipeline.stats()}
 
     def _latest(self, name: str):
@@ -177,6 +283,18 @@ class MapperNode:
         for d in self._decls:
             d.undeclare()
         self.save_checkpoint()
+        if self.journal is not None:
+            self.journal.close()
+
+
+def _identity(msg) -> tuple[str, int] | None:
+    """(sensor, frame_id) of an invalid keyframe message, when it has them."""
+    if not isinstance(msg, dict):
+        return None
+    fid, sensor = msg.get("frame_id"), msg.get("sensor", "depth")
+    if isinstance(fid, int) and not isinstance(fid, bool) and isinstance(sensor, str):
+        return sensor, fid
+    return None
 
 
 def main(cfg: MapperConfig, stop: threading.Event | None = None) -> None:

@@ -5,6 +5,7 @@ from __future__ import annotations
 DEFAULT_NAMESPACE = "aisdf"
 
 KEYFRAMES = "keyframes"
+KEYFRAMES_ACK = "keyframes/ack"  # protocol 1.2: mapper -> front ends, KeyframeAck
 MAP_WEIGHTS = "map/weights"
 MAP_SURFELS = "map/surfels"
 QUERY_SDF = "query/sdf"
