@@ -42,3 +42,12 @@ class FrontendConfig(ServiceConfig):
     depth_encoding: Literal["f4", "u2"] = Field("f4", description="wire depth: f4 metres or u2 millimetres")
     sensor: str = Field("depth", description="sensor name put in every keyframe")
     keyframes: KeyframeConfig = Field(default_factory=KeyframeConfig)
+    reliable: bool = Field(True, description="wait for a mapper, resend until acknowledged (protocol 1.2); false: "
+                           "publish each keyframe once (mappers before 1.2 send no acknowledgements)")
+    hold_max: int = Field(128, ge=1, description="keyframes held unacknowledged (no mapper, or in flight); the "
+                          "oldest is dropped beyond (logged, counted)")
+    send_window: int = Field(8, ge=1, description="keyframes in flight (sent, not acknowledged) at most; keep it "
+                             "below the mapper's queue_max")
+    resend_period_s: float = Field(3.0, gt=0, description="a keyframe unacknowledged this long is sent again")
+    drain_timeout_s: float = Field(60.0, ge=0, description="after the source ends, wait this long at most for "
+                                   "the acknowledgements of what is held")

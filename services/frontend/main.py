@@ -1,5 +1,9 @@
 """``aisdf-frontend``: streams a posed depth source, selects keyframes by motion and
-overlap, and publishes them on ``<namespace>/keyframes``."""
+overlap, and publishes them on ``<namespace>/keyframes``.
+
+Reliable by default (protocol 1.2): keyframes are sent only while a mapper's liveliness
+token (``status/mapper/<id>``) is there, held (bounded) while none is, and sent again
+until the mapper acknowledges them on ``keyframes/ack`` (see ``outbox.py``)."""
 
 from __future__ import annotations
 
@@ -10,12 +14,14 @@ import time
 import uuid
 
 import numpy as np
+import zenoh
 
 from aisdf import keys, protocol, transport
 from aisdf.config import add_common_args, config_from_args, service_setup
 
 from .config import FrontendConfig
 from .keyframes import KeyframeSelector
+from .outbox import KeyframeOutbox
 from .sources import open_source
 
 log = logging.getLogger("aisdf.frontend")
@@ -66,23 +72,121 @@ def stream(cfg: FrontendConfig, publish, stop: threading.Event, counts: dict | N
     return counts
 
 
+class ReliableSender:
+    """Zenoh wiring of the outbox: a liveliness subscriber on the mappers' tokens
+    (``status/mapper/*``), a subscriber on ``keyframes/ack`` and a thread that puts what
+    the outbox says is due."""
+
+    def __init__(self, cfg: FrontendConfig, session):
+        self.cfg, self.session = cfg, session
+        self.key = keys.key(cfg.namespace, keys.KEYFRAMES)
+        self.outbox = KeyframeOutbox(cfg.hold_max, cfg.send_window, cfg.resend_period_s)
+        self.lock = threading.Lock()
+        self.mappers: set[str] = set()
+        self._wake = threading.Event()
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name="sender", daemon=True)
+        self._decls = [
+            session.declare_subscriber(keys.key(cfg.namespace, keys.KEYFRAMES_ACK), self._on_ack),
+            session.liveliness().declare_subscriber(keys.status_key(cfg.namespace, "mapper", "*"), self._on_token,
+                                                    history=True),
+        ]
+        self._thread.start()
+
+    def _on_token(self, sample) -> None:
+        name = str(sample.key_expr).rsplit("/", 1)[-1]
+        with self.lock:
+            if sample.kind == zenoh.SampleKind.PUT:
+                self.mappers.add(name)
+            else:
+                self.mappers.discard(name)
+            present = bool(self.mappers)
+            self.outbox.set_mapper_present(present)
+            pending = self.outbox.pending
+        log.info("mapper %s %s; %d keyframes unacknowledged%s", name,
+                 "is up" if sample.kind == zenoh.SampleKind.PUT else "left", pending,
+                 "" if present else f" (holding up to {self.cfg.hold_max} until a mapper is there)")
+        self._wake.set()
+
+    def _on_ack(self, sample) -> None:
+        try:
+            ack = protocol.KeyframeAck.from_msg(protocol.unpack(transport.payload_bytes(sample.payload)))
+        except protocol.ProtocolError as e:
+            log.warning("ignoring malformed acknowledgement: %s", e.message)
+            return
+        if ack.sensor != self.cfg.sensor:
+            return
+        with self.lock:
+            self.outbox.ack(ack.frame_ids, ack.rejected)
+        self._wake.set()
+
+    def add(self, msg: dict) -> None:
+        with self.lock:
+            if not self.outbox.mapper_present and not self.outbox.pending:
+                log.info("no mapper under '%s' yet: holding keyframes (up to %d)", self.cfg.namespace,
+                         self.cfg.hold_max)
+            self.outbox.add(int(msg["frame_id"]), protocol.pack(msg))
+        self._wake.set()
+
+    def _run(self) -> None:
+        while not self._stop.is_set():
+            self._wake.wait(0.1)
+            self._wake.clear()
+            with self.lock:
+                batch = self.outbox.due()
+            for _fid, payload in batch:
+                self.session.put(self.key, payload, encoding=transport.ENCODING)
+
+    def counts(self) -> dict:
+        with self.lock:
+            return {**self.outbox.counts, "pending": self.outbox.pending, "mappers": len(self.mappers)}
+
+    def drain(self, timeout: float, stop: threading.Event) -> bool:
+        """Wait until every keyframe is acknowledged (True), ``timeout`` passes or ``stop``."""
+        end = time.monotonic() + timeout
+        while self.outbox.pending and not stop.is_set() and time.monotonic() < end:
+            stop.wait(0.1)
+        return not self.outbox.pending
+
+    def close(self) -> None:
+        self._stop.set()
+        self._wake.set()
+        self._thread.join(timeout=5)
+        for d in self._decls:
+            d.undeclare()
+
+
 def main(cfg: FrontendConfig, stop: threading.Event | None = None) -> dict:
     stop = stop or threading.Event()
     with transport.open_session(cfg.zenoh) as session:
         token = session.liveliness().declare_token(keys.status_key(cfg.namespace, "frontend", uuid.uuid4().hex[:8]))
         counts: dict = {"frames": 0, "keyframes": 0, "done": False}
-        info = transport.serve(session, keys.key(cfg.namespace, INFO_KEY), lambda _req: {"v": 1, **counts}, allow_empty=True)
         key = keys.key(cfg.namespace, keys.KEYFRAMES)
+        sender = ReliableSender(cfg, session) if cfg.reliable else None
+        info = transport.serve(session, keys.key(cfg.namespace, INFO_KEY),
+                               lambda _req: {"v": 1, **counts, **(sender.counts() if sender else {})}, allow_empty=True)
         log.info("frontend streaming %s to %s", cfg.source if cfg.source != "synthetic" else
                  f"synthetic '{cfg.building}'", key)
-        stream(cfg, lambda msg: transport.put(session, key, msg), stop, counts)
-        counts["done"] = True
-        log.info("done: %d frames, %d keyframes", counts["frames"], counts["keyframes"])
-        time.sleep(0.2)  # let the last put leave
-        if cfg.linger:
-            stop.wait()
-        info.undeclare()
-        token.undeclare()
+        try:
+            stream(cfg, sender.add if sender else (lambda msg: transport.put(session, key, msg)), stop, counts)
+            if sender and not cfg.linger:  # lingering, the sender keeps resending until stopped
+                log.info("source done: %d frames, %d keyframes; waiting up to %.0f s for %d acknowledgements",
+                         counts["frames"], counts["keyframes"], cfg.drain_timeout_s, sender.outbox.pending)
+                sender.drain(cfg.drain_timeout_s, stop)
+            counts["done"] = True
+            c = sender.counts() if sender else {}
+            log.info("done: %d frames, %d keyframes%s", counts["frames"], counts["keyframes"],
+                     f"; {c['acked']} acknowledged, {c['rejected']} rejected by the mapper, {c['dropped']} dropped "
+                     f"while held, {c['pending']} never acknowledged; {c['sent']} sent, {c['resent']} resent"
+                     if sender else " (sent once each, unacknowledged)")
+            time.sleep(0.2)  # let the last put leave
+            if cfg.linger:
+                stop.wait()
+        finally:
+            if sender:
+                sender.close()
+            info.undeclare()
+            token.undeclare()
     return counts
 
 
