@@ -138,6 +138,11 @@ class SDFNetwork(nn.Module):
         return self.encoding.out_dim
 
     def forward(self, points: torch.Tensor) -> torch.Tensor:
+        if points.device.type == "cpu":
+            # Softplus(beta=100) underflows to denormal floats, which x86 CPUs compute 5-10x
+            # slower (measured here: a training step 7.5x, inference 4x). Flush them to zero
+            # in the calling thread (the flag is per thread; the CPU backward runs there too).
+            torch.set_flush_denormal(True)
         enc = self.encoding(points)
         h = enc
         for k, layer in enumerate(self.layers):
