@@ -17,12 +17,12 @@ def _demo(args) -> None:
 
 
 def _bench_query(args) -> None:
-    from .bench.query import run, table
+    from .bench.query import report, run
 
-    for grad in ([False, True] if args.gradient == "both" else [args.gradient == "yes"]):
-        rows = run(sizes=args.sizes, repeats=args.repeats, preset=args.preset, gradient=grad, threads=args.threads,
-                   out=f"{args.out}/query{'_grad' if grad else ''}.json" if args.out else None)
-        print(table(rows))
+    res = run(out=args.out, sizes=args.sizes, repeats=args.repeats, threads=args.threads,
+              train_steps=args.train_steps, planners=args.planners, planner_s=args.planner_s, lag_s=args.lag_s,
+              n_eval=args.eval_points)
+    print(report(res))
 
 
 def _bench(args) -> None:
@@ -58,13 +58,21 @@ def main(argv: list[str] | None = None) -> None:
 
     _bench_arguments(b)
     bsub = b.add_subparsers(dest="bench_cmd")
-    q = bsub.add_parser("query", help="query/sdf over Zenoh vs in-process: throughput, latency, ratio")
+    q = bsub.add_parser("query", help="query/sdf on the demo building's map: the baked field beside the network",
+                        description="Trains (or reuses from --out) the demo building's map, then measures the bake "
+                        "(time, memory), its accuracy against the network and the truth on the demo's evaluation "
+                        "points, latency in-process and over Zenoh (baked and network, with and without "
+                        "gradients), the lag behind 1 Hz weights, and concurrent planners. Prints the tables; "
+                        "writes query.json.")
     q.add_argument("--sizes", type=int, nargs="+", default=[1_000, 10_000, 100_000])
     q.add_argument("--repeats", type=int, default=20)
-    q.add_argument("--preset", default="auto", choices=["auto", "paper", "cpu"], help="network of this preset")
-    q.add_argument("--gradient", default="no", choices=["no", "yes", "both"])
     q.add_argument("--threads", type=int, help="torch threads in both the service and in-process")
-    q.add_argument("--out", help="folder for the JSON results")
+    q.add_argument("--train-steps", type=int, default=900, help="training steps of the demo map (default 900)")
+    q.add_argument("--planners", type=int, default=8)
+    q.add_argument("--planner-s", type=float, default=60.0, help="seconds of the concurrent-planners run")
+    q.add_argument("--lag-s", type=float, default=30.0, help="seconds of the 1 Hz lag run")
+    q.add_argument("--eval-points", type=int, default=200_000)
+    q.add_argument("--out", default="runs/bench-query", help="results and the cached map (default runs/bench-query)")
     q.set_defaults(fn=_bench_query)
     b.set_defaults(fn=_bench)
 

@@ -1,10 +1,29 @@
-"""``aisdf bench query``: throughput and latency of ``query/sdf`` over Zenoh (a real query
-service process on loopback) beside evaluating the same network in-process, for
-batches of 1k, 10k and 100k points. Prints a markdown table with the ratio."""
+"""``aisdf bench query``: the baked field beside the network, in one run, on the demo
+building's map.
+
+1. The map: the demo's synthetic ``office`` building, camera path and keyframe selection,
+   trained in-process with the ``cpu`` preset for ``--train-steps`` steps (the demo's
+   mapper makes about as many in its 180 s); cached in ``--out`` so a rerun skips it.
+2. The bake: wall time and memory (the baked arrays, and the process's peak resident
+   memory growth during the bake, measured in a fresh process).
+3. Accuracy on the demo's 200,000 evaluation points (along seen rays, iSDF's protocol):
+   baked vs network (mean and 99th percentile difference, gradient cosine distance added)
+   and each against the exact SDF.
+4. Latency and throughput: in-process and over Zenoh (a real ``aisdf-query`` process on
+   loopback), baked and network, 1k/10k/100k points, with and without gradients.
+5. Lag: weights published at the demo's snapshot rate (1 Hz); how far the answering map
+   trails the newest weights, sampled at 10 Hz.
+6. Concurrent planners: 8 planners sending 10,000-point requests back to back for
+   ``--planner-s`` seconds: latency percentiles, requests lost, busy replies.
+"""
 
 from __future__ import annotations
 
 import json
+import resource
+import subprocess
+import sys
+import threading
 import time
 from pathlib import Path
 
@@ -13,18 +32,62 @@ import torch
 
 from .. import keys, protocol, transport
 from ..client import SdfClient
-from ..mapping.presets import training_config
-from ..network import SDFNetwork, model_spec, state_to_numpy
 from ..stack import Stack, wait_for
 
+NS = "aisdf/bench"
 
-def _snapshot(preset: str) -> protocol.WeightSnapshot:
-    cfg = training_config(preset)
-    torch.manual_seed(0)
-    net = SDFNetwork(cfg.network)
-    spec = model_spec(net)
-    spec["bounds"] = [[-4.0, -4.0, -1.0], [4.0, 4.0, 3.0]]
-    return protocol.WeightSnapshot(1, 0, time.time(), spec, state_to_numpy(net))
+
+# ----------------------------------------------------------------------------- the map
+
+
+def demo_map(out: Path, train_steps: int = 900, seed: int = 0, duration: float = 180.0, quiet: bool = False) -> dict:
+    """Train (or load from ``out/map.msgpack``) the demo building's map as the demo makes it."""
+    from aisdf_frontend.config import KeyframeConfig
+    from aisdf_frontend.keyframes import KeyframeSelector
+
+    from ..pipeline import MappingPipeline
+    from ..synthetic import SyntheticSequence
+
+    path = out / "map.msgpack"
+    fps = 30.0
+    n_frames = int(max(10.0, 0.75 * duration) * fps)  # as the demo
+    seq = SyntheticSequence(building="office", n_frames=n_frames, fps=fps, seed=seed)
+    if path.exists():
+        m = protocol.unpack(path.read_bytes())
+        if m.get("train_steps") == train_steps and m.get("n_frames") == n_frames:
+            return {"seq": seq, **m}
+    t0 = time.perf_counter()
+    sel = KeyframeSelector(KeyframeConfig())
+    kfs = []
+    for i in range(n_frames):
+        f = seq.frame(i)
+        if sel.is_keyframe(f["stamp"], f["depth"], f["K"], f["T_WC"]):
+            kfs.append(i)
+    pipe = MappingPipeline.from_settings("cpu")
+    per = max(1, train_steps // max(1, len(kfs)))
+    for j, i in enumerate(kfs):
+        f = seq.frame(i)
+        pipe.add_keyframe(protocol.Keyframe(f["frame_id"], f["stamp"], np.asarray(f["depth"], np.float32), f["K"],
+                                            f["T_WC"]))
+        for _ in range(per if j < len(kfs) - 1 else train_steps - per * (len(kfs) - 1)):
+            pipe.step()
+        if not quiet and (j % 20 == 0 or j == len(kfs) - 1):
+            print(f"  training the demo map: keyframe {j + 1}/{len(kfs)}, step {pipe.steps}/{train_steps}, "
+                  f"{time.perf_counter() - t0:.0f} s", flush=True)
+    m = {"train_steps": train_steps, "n_frames": n_frames, "keyframes": len(kfs),
+         "weights": pipe.weight_snapshot(1).to_msg(), "surfels": pipe.surfel_map(1).to_msg()}
+    out.mkdir(parents=True, exist_ok=True)
+    path.write_bytes(protocol.pack(m))
+    return {"seq": seq, **m}
+
+
+# ----------------------------------------------------------------------------- helpers
+
+
+def _pcts(ts) -> dict:
+    a = 1e3 * np.asarray(ts, float)
+    return {"p50": float(np.percentile(a, 50)), "p95": float(np.percentile(a, 95)),
+            "p99": float(np.percentile(a, 99)), "n": len(a)}
 
 
 def _time(fn, repeats: int) -> list[float]:
@@ -37,58 +100,265 @@ def _time(fn, repeats: int) -> list[float]:
     return out
 
 
-def run(sizes=(1_000, 10_000, 100_000), repeats: int = 20, preset: str = "auto", gradient: bool = False,
-        out: str | Path | None = None, threads: int | None = None, log_dir: str | None = None) -> list[dict]:
+def _cos_dist(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    na, nb = np.linalg.norm(a, axis=1), np.linalg.norm(b, axis=1)
+    return 1.0 - np.sum(a * b, 1) / np.maximum(na * nb, 1e-12)
+
+
+def _engine(m: dict):
     from aisdf_query.engine import QueryEngine
 
+    e = QueryEngine(device="auto")
+    e.set_weights(protocol.WeightSnapshot.from_msg(m["weights"]))
+    e.set_surfels(protocol.SurfelMap.from_msg(m["surfels"]))
+    return e
+
+
+_BAKE_PROBE = r"""
+import json, resource, sys, time
+import torch
+torch.set_num_threads(int(sys.argv[2]))
+from aisdf import protocol
+from aisdf.bench.query import _engine
+m = protocol.unpack(open(sys.argv[1], "rb").read())
+e = _engine(m)
+e._implicit(e.state.net, __import__("numpy").zeros((4096, 3), "float32"), True)   # warm torch
+from aisdf.baked import bake, BakeConfig
+import numpy as np
+from aisdf.observed import ObservedGrid
+occ = np.zeros((8, 8, 8), bool); occ[2:6, 2:6, 2:6] = True
+bake(lambda p: (p[:, 0].copy(), np.tile([1.0, 0, 0], (len(p), 1)).astype("float32")), ObservedGrid(np.zeros(3), 0.1, occ))
+e._baked = None
+rss0 = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+t = time.perf_counter()
+b = e.bake_now()
+wall = time.perf_counter() - t
+rss1 = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+print(json.dumps({"wall_s": wall, "peak_growth_mb": (rss1 - rss0) / 1024, "field_mb": b.field.nbytes / 1e6,
+                  **b.field.stats}))
+"""
+
+
+def bake_probe(map_path: Path, threads: int) -> dict:
+    """Bake once in a fresh process: wall time, the field's size and the peak memory growth."""
+    r = subprocess.run([sys.executable, "-c", _BAKE_PROBE, str(map_path), str(threads)], capture_output=True,
+                       text=True, timeout=600)
+    if r.returncode:
+        raise RuntimeError(f"bake probe failed: {r.stderr[-2000:]}")
+    return json.loads(r.stdout.strip().splitlines()[-1])
+
+
+# ----------------------------------------------------------------------------- the run
+
+
+def run(out: str | Path = "runs/bench-query", sizes=(1_000, 10_000, 100_000), repeats: int = 20,
+        threads: int | None = None, train_steps: int = 900, planners: int = 8, planner_s: float = 60.0,
+        lag_s: float = 30.0, n_eval: int = 200_000, quiet: bool = False, log_dir: str | None = None) -> dict:
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
     if threads:
         torch.set_num_threads(threads)
-    snap = _snapshot(preset)
+    say = (lambda *a: None) if quiet else (lambda *a: print(*a, flush=True))
+    say("1/6 the demo building's map")
+    m = demo_map(out, train_steps, quiet=quiet)
+    seq = m.pop("seq")
+    res: dict = {"map": {"keyframes": m["keyframes"], "train_steps": m["train_steps"]},
+                 "threads": threads or torch.get_num_threads()}
+
+    say("2/6 bake time and memory (a fresh process)")
+    res["bake"] = bake_probe(out / "map.msgpack", threads or torch.get_num_threads())
+
+    say("3/6 accuracy on the demo's evaluation points")
+    from ..demo import eval_points_from
+
+    eng = _engine(m)
+    eng.bake_now()
     rng = np.random.default_rng(0)
-    rows = []
+    pts = eval_points_from(seq, len(seq), n_eval, rng)
+    gt = seq.gt_sdf(pts)
+    gt_grad = _gt_gradient(seq, pts)
+    b = eng.answer_sdf(protocol.SdfRequest(pts, gradient=True))
+    n = eng.answer_sdf(protocol.SdfRequest(pts, gradient=True, exact=True))
+    assert b.baked and not n.baked
+    d = np.abs(b.sdf - n.sdf)
+    valid = np.linalg.norm(gt_grad, axis=1) > 0.5
+    res["accuracy"] = {
+        "points": len(pts), "covered": float(np.mean(eng.baked.field.query(pts, False)[2])),
+        "diff_mean_cm": 100 * float(d.mean()), "diff_p99_cm": 100 * float(np.percentile(d, 99)),
+        "diff_max_cm": 100 * float(d.max()),
+        "grad_cos_baked_vs_network": float(_cos_dist(b.gradient, n.gradient).mean()),
+        "grad_cos_network_vs_truth": float(_cos_dist(n.gradient[valid], gt_grad[valid]).mean()),
+        "grad_cos_baked_vs_truth": float(_cos_dist(b.gradient[valid], gt_grad[valid]).mean()),
+        "sdf_error_network_cm": 100 * float(np.abs(n.sdf - gt).mean()),
+        "sdf_error_baked_cm": 100 * float(np.abs(b.sdf - gt).mean()),
+    }
+    a = res["accuracy"]
+    a["grad_cos_added"] = a["grad_cos_baked_vs_truth"] - a["grad_cos_network_vs_truth"]
+
+    say("4/6 latency: in-process and over Zenoh, baked and network")
+    res["latency"] = []
     qargs = ["--set", f"torch_threads={threads}"] if threads else []
-    with Stack(services=("query",), namespace="aisdf/bench", args={"query": qargs}, log_dir=log_dir) as stack:
-        with SdfClient("aisdf/bench", zenoh=stack.client_zenoh, timeout=60.0) as client:
-            key = keys.key("aisdf/bench", keys.MAP_WEIGHTS)
+    with Stack(services=("query",), namespace=NS, args={"query": qargs}, log_dir=log_dir) as stack:
+        with SdfClient(NS, zenoh=stack.client_zenoh, timeout=60.0) as client:
+            s = client._session
+            wkey, skey = keys.key(NS, keys.MAP_WEIGHTS), keys.key(NS, keys.MAP_SURFELS)
+            info_key = keys.key(NS, "info/query")
+
+            def baked_version():
+                i = transport.get_latest(s, info_key, 1.0) or {}
+                return i.get("baked_version")
+
+            def publish(version: int):
+                w, sf = dict(m["weights"]), dict(m["surfels"])
+                w["version"] = sf["version"] = version
+                transport.put(s, skey, sf)
+                transport.put(s, wkey, w)
 
             def ready():
-                transport.put(client._session, key, snap.to_msg())
-                try:
-                    return client.query(np.zeros((1, 3))).map_version == 1
-                except (protocol.ProtocolError, TimeoutError):
-                    return False
+                if baked_version() == 1:
+                    return True
+                publish(1)  # until the service has subscribed (an older copy is ignored)
+                return False
 
-            wait_for(ready, 60, period=0.5, what="the query service to load the map")
-            engine = QueryEngine(device="auto")
-            engine.set_weights(snap)
-            for n in sizes:
-                pts = rng.uniform(-3, 3, size=(n, 3)).astype(np.float32)
-                req = protocol.SdfRequest(pts, gradient)
-                reps = max(3, repeats if n <= 10_000 else repeats // 4)
-                t_local = _time(lambda: engine.answer_sdf(req), reps)
-                t_zenoh = _time(lambda: client.query(pts, gradient=gradient), reps)
-                # Same answers both ways (the wire carries float32).
-                assert np.allclose(client.query(pts[:100]).sdf, engine.answer_sdf(protocol.SdfRequest(pts[:100])).sdf,
-                                   atol=1e-5)
-                row = {"points": n, "gradient": gradient, "repeats": reps,
-                       "inproc_ms_p50": 1e3 * float(np.median(t_local)),
-                       "zenoh_ms_p50": 1e3 * float(np.median(t_zenoh)),
-                       "zenoh_ms_p95": 1e3 * float(np.percentile(t_zenoh, 95)),
-                       "inproc_pts_per_s": n / float(np.median(t_local)),
-                       "zenoh_pts_per_s": n / float(np.median(t_zenoh))}
-                row["ratio"] = row["zenoh_pts_per_s"] / row["inproc_pts_per_s"]
-                rows.append(row)
-    if out:
-        Path(out).parent.mkdir(parents=True, exist_ok=True)
-        Path(out).write_text(json.dumps({"preset": preset, "model": snap.model, "rows": rows}, indent=2))
-    return rows
+            wait_for(ready, 120, period=1.0, what="the query service to bake the map")
+            for grad in (False, True):
+                for npts in sizes:
+                    q = pts[rng.choice(len(pts), npts, replace=False)].astype(np.float32)
+                    reps = max(5, repeats if npts <= 10_000 else repeats // 4)
+                    row = {"points": npts, "gradient": grad}
+                    for exact in (False, True):
+                        name = "network" if exact else "baked"
+                        req = protocol.SdfRequest(q, grad, exact=exact)
+                        t_in = _time(lambda: eng.answer_sdf(req), reps if not exact else max(3, reps // 2))
+                        t_z = _time(lambda: client.query(q, gradient=grad, exact=exact),
+                                    reps if not exact else max(3, reps // 2))
+                        r = client.query(q, gradient=grad, exact=exact)
+                        assert r.baked == (not exact)
+                        row[name] = {"inproc": _pcts(t_in), "zenoh": _pcts(t_z),
+                                     "inproc_pts_s": npts / float(np.median(t_in)),
+                                     "zenoh_pts_s": npts / float(np.median(t_z))}
+                    res["latency"].append(row)
+                    say(f"  {npts:>7,} pts grad={grad!s:5}: baked zenoh p50 {row['baked']['zenoh']['p50']:.1f} ms, "
+                        f"network {row['network']['zenoh']['p50']:.1f} ms")
+
+            say(f"5/6 lag behind the newest weights at 1 Hz for {lag_s:.0f} s")
+            lags, versions = [], []
+            t0 = time.monotonic()
+            v = 1
+            next_pub = t0
+            while time.monotonic() - t0 < lag_s:
+                now = time.monotonic()
+                if now >= next_pub:
+                    v += 1
+                    publish(v)
+                    next_pub += 1.0
+                i = transport.get_latest(s, info_key, 1.0) or {}
+                lag = i.get("lag") or {}
+                lags.append(float(lag.get("behind_s", 0.0)))
+                versions.append(int(lag.get("versions", 0)))
+                time.sleep(0.1)
+            wait_for(lambda: baked_version() == v, 30, what="the last bake")
+            info = transport.get_latest(s, info_key, 1.0) or {}
+            res["lag"] = {"published": v - 1, "samples": len(lags), "behind_s_p50": float(np.median(lags)),
+                          "behind_s_p95": float(np.percentile(lags, 95)), "behind_s_max": float(np.max(lags)),
+                          "versions_behind_max": int(np.max(versions)), "bakes": info.get("bakes"),
+                          "last_bake": info.get("last_bake")}
+
+            say(f"6/6 {planners} concurrent planners x {planner_s:.0f} s of 10,000-point requests")
+            res["planners"] = concurrent_planners(client, pts, planners, planner_s)
+            info = transport.get_latest(s, info_key, 1.0) or {}
+            res["planners"]["service"] = {k: info.get(k) for k in ("answered", "errors", "busy")}
+    (out / "query.json").write_text(json.dumps(res, indent=2))
+    return res
 
 
-def table(rows: list[dict]) -> str:
-    lines = ["| points | gradient | in-process p50 (ms) | Zenoh p50 (ms) | Zenoh p95 (ms) | in-process (pts/s) "
-             "| Zenoh (pts/s) | ratio |", "|---:|:---:|---:|---:|---:|---:|---:|---:|"]
-    for r in rows:
-        lines.append(f"| {r['points']:,} | {'yes' if r['gradient'] else 'no'} | {r['inproc_ms_p50']:.1f} | "
-                     f"{r['zenoh_ms_p50']:.1f} | {r['zenoh_ms_p95']:.1f} | {r['inproc_pts_per_s']:,.0f} | "
-                     f"{r['zenoh_pts_per_s']:,.0f} | {r['ratio']:.2f} |")
+def _gt_gradient(seq, pts: np.ndarray, h: float = 0.01) -> np.ndarray:
+    g = np.zeros_like(pts)
+    for k in range(3):
+        e = np.zeros(3)
+        e[k] = h
+        g[:, k] = (seq.gt_sdf(pts + e) - seq.gt_sdf(pts - e)) / (2 * h)
+    return g
+
+
+def concurrent_planners(client: SdfClient, pts: np.ndarray, planners: int, seconds: float,
+                        n_points: int = 10_000, gradient: bool = True) -> dict:
+    """``planners`` threads, each sending ``n_points``-point requests back to back."""
+    lat: list[float] = []
+    counts = {"sent": 0, "answered": 0, "busy": 0, "errors": 0, "timeouts": 0}
+    lock = threading.Lock()
+    stop = time.monotonic() + seconds
+
+    def planner(i: int):
+        rng = np.random.default_rng(100 + i)
+        while time.monotonic() < stop:
+            q = pts[rng.integers(0, len(pts), n_points)].astype(np.float32)
+            t = time.perf_counter()
+            try:
+                client.query(q, gradient=gradient)
+                kind = "answered"
+            except protocol.ProtocolError as e:
+                kind = "busy" if e.code == "busy" else "errors"
+            except TimeoutError:
+                kind = "timeouts"
+            dt = time.perf_counter() - t
+            with lock:
+                counts["sent"] += 1
+                counts[kind] += 1
+                if kind == "answered":
+                    lat.append(dt)
+
+    ths = [threading.Thread(target=planner, args=(i,)) for i in range(planners)]
+    t0 = time.perf_counter()
+    for t in ths:
+        t.start()
+    for t in ths:
+        t.join()
+    wall = time.perf_counter() - t0
+    return {"planners": planners, "seconds": round(wall, 1), "points_per_request": n_points, "gradient": gradient,
+            **counts, "lost": counts["sent"] - counts["answered"] - counts["busy"] - counts["errors"],
+            "latency_ms": _pcts(lat) if lat else None, "points_per_s": counts["answered"] * n_points / wall}
+
+
+# ----------------------------------------------------------------------------- tables
+
+
+def report(res: dict) -> str:
+    b, a, lg, pl = res["bake"], res["accuracy"], res["lag"], res["planners"]
+    lines = [f"Map: the demo building (office), {res['map']['keyframes']} keyframes, "
+             f"{res['map']['train_steps']} training steps (cpu preset); torch threads {res['threads']}.", "",
+             "| bake | value |", "|---|---:|",
+             f"| wall time (s) | {b['wall_s']:.2f} |",
+             f"| network evaluations | {b['evaluations']:,} |",
+             f"| blocks (fine) | {b['blocks']:,} ({b['fine_blocks']:,}) |",
+             f"| baked arrays (MB) | {b['field_mb']:.1f} |",
+             f"| peak memory growth during the bake (MB) | {b['peak_growth_mb']:.1f} |",
+             f"| answering map behind the newest weights at 1 Hz: p50 / p95 / max (s) | "
+             f"{lg['behind_s_p50']:.2f} / {lg['behind_s_p95']:.2f} / {lg['behind_s_max']:.2f} |", "",
+             f"| accuracy on {a['points']:,} demo evaluation points | value |", "|---|---:|",
+             f"| covered by the bake | {100 * a['covered']:.2f} % |",
+             f"| baked vs network: mean abs difference (cm) | {a['diff_mean_cm']:.3f} |",
+             f"| baked vs network: 99th percentile (cm) | {a['diff_p99_cm']:.3f} |",
+             f"| baked vs network: gradient cosine distance | {a['grad_cos_baked_vs_network']:.4f} |",
+             f"| gradient cosine distance to the truth: network / baked (added) | "
+             f"{a['grad_cos_network_vs_truth']:.4f} / {a['grad_cos_baked_vs_truth']:.4f} ({a['grad_cos_added']:+.4f}) |",
+             f"| SDF error against the truth: network / baked (cm) | "
+             f"{a['sdf_error_network_cm']:.3f} / {a['sdf_error_baked_cm']:.3f} |", "",
+             "| points | gradient | path | in-process p50 / p99 (ms) | in-process (pts/s) | Zenoh p50 / p95 / p99 (ms) "
+             "| Zenoh (pts/s) |", "|---:|:---:|---|---:|---:|---:|---:|"]
+    for r in res["latency"]:
+        for name in ("baked", "network"):
+            x = r[name]
+            lines.append(f"| {r['points']:,} | {'yes' if r['gradient'] else 'no'} | {name} | "
+                         f"{x['inproc']['p50']:.2f} / {x['inproc']['p99']:.2f} | {x['inproc_pts_s']:,.0f} | "
+                         f"{x['zenoh']['p50']:.2f} / {x['zenoh']['p95']:.2f} / {x['zenoh']['p99']:.2f} | "
+                         f"{x['zenoh_pts_s']:,.0f} |")
+    lat = pl["latency_ms"] or {"p50": float("nan"), "p95": float("nan"), "p99": float("nan")}
+    lines += ["", f"| {pl['planners']} planners x {pl['seconds']:.0f} s, {pl['points_per_request']:,}-point requests "
+              f"with gradients | value |", "|---|---:|",
+              f"| requests sent / answered / busy / errors / timeouts | {pl['sent']} / {pl['answered']} / {pl['busy']} / "
+              f"{pl['errors']} / {pl['timeouts']} |",
+              f"| lost (no reply) | {pl['lost']} |",
+              f"| latency p50 / p95 / p99 (ms) | {lat['p50']:.1f} / {lat['p95']:.1f} / {lat['p99']:.1f} |",
+              f"| points answered per second | {pl['points_per_s']:,.0f} |"]
     return "\n".join(lines)
