@@ -1,0 +1,144 @@
+"""End to end, the query service's protocol 1.1: a real ``aisdf-query`` process over real
+Zenoh on loopback bakes a published map and answers from it (with radii and observed
+flags, read with the stranger's plain msgpack client); under overload it answers ``busy``
+at once and never lets a request time out."""
+
+import threading
+import time
+
+import numpy as np
+import pytest
+import torch
+
+import stranger_client as sc
+from aisdf import protocol
+from aisdf.mapping.frames import Frame
+from aisdf.metrics import eval_points
+from aisdf.network import NetworkConfig, SDFNetwork, model_spec, state_to_numpy
+from aisdf.pipeline import MappingPipeline
+from aisdf.stack import Stack, wait_for
+from aisdf.synthetic import SyntheticSequence
+from aisdf_query.engine import QueryEngine
+
+pytestmark = pytest.mark.e2e
+NS = "aisdf/e2eq"
+torch.set_num_threads(1)
+
+
+def info(s):
+    status, msg = sc.request(s, f"{NS}/info/query", {"v": 1}, 2.0)
+    return msg if status == "ok" else {}
+
+
+@pytest.fixture(scope="module")
+def small_map():
+    seq = SyntheticSequence(building="atlanta", n_frames=120, H=60, W=80, seed=1)
+    p = MappingPipeline.from_settings("cpu", {"network": {"width": 32}, "n_rays": 20})
+    frames = []
+    for i in range(0, 120, 20):
+        f = seq.frame(i)
+        frames.append(f)
+        p.add_keyframe(Frame(f["frame_id"], f["stamp"], f["depth"], f["K"], f["T_WC"]))
+        for _ in range(5):
+            p.step()
+    return seq, frames, p.weight_snapshot(1), p.surfel_map(1)
+
+
+def test_query_service_bakes_the_map_and_answers_planner_fields(small_map):
+    seq, frames, snap, smap = small_map
+    with Stack(services=("query",), namespace=NS) as st:
+        s = sc.open_session(st.endpoints)
+        try:
+            wait_for(lambda: info(s), 60, what="the query service")
+
+            def published_and_baked():
+                if smap is not None:
+                    s.put(f"{NS}/map/surfels", protocol.pack(smap.to_msg()), encoding=sc.ENC)
+                s.put(f"{NS}/map/weights", protocol.pack(snap.to_msg()), encoding=sc.ENC)
+                return info(s).get("baked_version") == 1
+
+            wait_for(published_and_baked, 90, period=2.0, what="the map to be baked")
+            pts = eval_points(frames, n_points=3000, every=1, rng=0)
+            radii = np.random.default_rng(1).uniform(0, 0.2, len(pts))
+            status, msg = sc.request(s, f"{NS}/query/sdf", {
+                "v": 1, "points": sc.arr(pts, "<f8"), "gradient": True, "radii": sc.arr(radii, "<f8"),
+                "observed": True, "collision_epsilon": 0.3}, 30.0)
+            assert status == "ok", msg
+            assert msg["baked"] is True and msg["map_version"] == 1
+            # The same map baked in-process answers the same (the wire carries float32).
+            e = QueryEngine(device="cpu")
+            e.set_weights(protocol.WeightSnapshot.from_msg(protocol.unpack(protocol.pack(snap.to_msg()))))
+            if smap is not None:
+                e.set_surfels(protocol.SurfelMap.from_msg(protocol.unpack(protocol.pack(smap.to_msg()))))
+            e.bake_now()
+            want = e.answer_sdf(protocol.SdfRequest(pts, True, 0.3, radii=radii, observed=True))
+            np.testing.assert_allclose(sc.unarr(msg["sdf"]), want.sdf, atol=1e-5)
+            np.testing.assert_allclose(sc.unarr(msg["gradient"]), want.gradient, atol=1e-4)
+            np.testing.assert_array_equal(sc.unarr(msg["observed"]).astype(bool), want.observed)
+            assert sc.unarr(msg["observed"]).mean() > 0.99  # evaluation points lie along seen rays
+            # Against the truth the bake is about as good as the network of the same map.
+            exact = e.answer_sdf(protocol.SdfRequest(pts, exact=True))
+            gt = seq.gt_sdf(pts)
+            err_b = np.abs(sc.unarr(msg["sdf"]) + radii - gt).mean()
+            err_n = np.abs(exact.sdf - gt).mean()
+            assert err_b < err_n + 0.005, (err_b, err_n)
+            # Far from anything seen: not observed; an old (1.0) request still gets a 1.0 reply.
+            status, msg = sc.request(s, f"{NS}/query/sdf", {"v": 1, "points": sc.arr([[50.0, 50, 50]], "<f4"),
+                                                           "observed": True})
+            assert status == "ok" and not sc.unarr(msg["observed"]).any()
+            status, msg = sc.request(s, f"{NS}/query/sdf", {"v": 1, "points": sc.arr(pts[:5], "<f4")})
+            assert status == "ok" and sc.unarr(msg["sdf"]).shape == (5,) and "observed" not in msg
+            assert st.alive("query")
+        finally:
+            s.close()
+
+
+def big_snapshot():
+    torch.manual_seed(0)
+    net = SDFNetwork(NetworkConfig(width=128))
+    spec = model_spec(net)
+    spec["bounds"] = [[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]]
+    return protocol.pack(protocol.WeightSnapshot(1, 0, 0.0, spec, state_to_numpy(net)).to_msg())
+
+
+def test_overload_gets_busy_replies_never_timeouts():
+    # One worker, one waiting request, network answers (no bake): 12 planners at once.
+    args = ["--set", "workers=1", "--set", "queue_max=1", "--set", "bake=false", "--set", "torch_threads=1"]
+    with Stack(services=("query",), namespace=NS, args={"query": args}) as st:
+        s = sc.open_session(st.endpoints)
+        try:
+            key = f"{NS}/query/sdf"
+            small = {"v": 1, "points": sc.arr(np.zeros((4, 3)), "<f4")}
+
+            def loaded():
+                s.put(f"{NS}/map/weights", big_snapshot(), encoding=sc.ENC)
+                return sc.request(s, key, small, 2.0)[0] == "ok"
+
+            wait_for(loaded, 60, period=1.0, what="the map to load")
+            pts = np.random.default_rng(0).uniform(-1, 1, (100_000, 3))
+            results = []
+            lock = threading.Lock()
+
+            def planner():
+                for _ in range(3):
+                    t = time.monotonic()
+                    status, msg = sc.request(s, key, {"v": 1, "points": sc.arr(pts, "<f4"), "gradient": True}, 60.0)
+                    with lock:
+                        results.append((status, (msg or {}).get("error"), time.monotonic() - t))
+
+            ths = [threading.Thread(target=planner) for _ in range(12)]
+            for t in ths:
+                t.start()
+            for t in ths:
+                t.join()
+            kinds = [r[0] if r[0] != "err" else r[1] for r in results]
+            assert len(results) == 36
+            assert "timeout" not in kinds, kinds
+            assert kinds.count("ok") >= 2 and kinds.count("busy") >= 10, kinds
+            assert set(kinds) <= {"ok", "busy"}, kinds
+            # The service still answers normally and counted what it refused.
+            assert sc.request(s, key, small, 10.0)[0] == "ok"
+            assert info(s)["busy"] == kinds.count("busy")
+            assert st.alive("query")
+        finally:
+            s.close()
