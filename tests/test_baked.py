@@ -53,16 +53,18 @@ def test_exact_on_a_linear_field_and_a_planes_sdf():
     grid = box_grid()
     for normal, c in (([0.3, -0.5, 0.8], 0.2), ([0.0, 0.0, 1.0], 1.0), ([1.0, 2.0, -0.5], -0.7)):
         n, fn = plane_fn(normal, c)
-        fld = bake(fn, grid)
-        assert fld.stats["core_blocks"] > 0, "a plane through the box must make fine blocks"
-        p = inside_points(grid, 50_000, rng)
-        f, g, cov = fld.query(p)
-        assert cov.all()
-        np.testing.assert_allclose(f, p @ n - c, atol=2e-6)
-        np.testing.assert_allclose(g, np.tile(n, (len(p), 1)), atol=2e-5)
-        f2, g2, _ = fld.query(p, gradient=False)
-        assert g2 is None
-        np.testing.assert_array_equal(f2, f)
+        for cfg in (BakeConfig(), BakeConfig(near_surface=True, fine=4)):
+            fld = bake(fn, grid, cfg)
+            # A plane is linear: nothing to refine, unless asked to refine near surfaces.
+            assert (fld.stats["fine_blocks"] > 0) == cfg.near_surface
+            p = inside_points(grid, 50_000, rng)
+            f, g, cov = fld.query(p)
+            assert cov.all()
+            np.testing.assert_allclose(f, p @ n - c, atol=3e-6)
+            np.testing.assert_allclose(g, np.tile(n, (len(p), 1)), atol=3e-5)
+            f2, g2, _ = fld.query(p, gradient=False)
+            assert g2 is None
+            np.testing.assert_array_equal(f2, f)
 
 
 def test_a_linear_field_far_from_zero_is_exact_on_the_coarse_level():
@@ -71,7 +73,8 @@ def test_a_linear_field_far_from_zero_is_exact_on_the_coarse_level():
     n, fn = plane_fn([0.2, 0.1, 1.0], -30.0)  # far above 0 everywhere: no fine level at all
     fld = bake(fn, grid)
     assert fld.stats["fine_blocks"] == 0
-    assert fld.stats["evaluations"] < (fld.stats["blocks"] * 1.5) + 200  # one evaluation per block, about
+    # Corners (about one per block) and the centre check (one per block): nothing dense.
+    assert fld.stats["evaluations"] < 2.5 * fld.stats["blocks"] + 200
     p = inside_points(grid, 20_000, rng)
     f, g, cov = fld.query(p)
     np.testing.assert_allclose(f, p @ n + 30.0, atol=3e-5)
@@ -80,7 +83,7 @@ def test_a_linear_field_far_from_zero_is_exact_on_the_coarse_level():
 
 def test_values_and_gradients_continuous_across_block_and_level_borders():
     grid = box_grid()
-    fld = bake(smooth_fn, grid, BakeConfig(block=0.2, fine=4))
+    fld = bake(smooth_fn, grid, BakeConfig(block=0.2, fine=4, tol=0.002))
     assert 0 < fld.stats["fine_blocks"] < fld.stats["blocks"], "both levels must be present"
     rng = np.random.default_rng(2)
     B = fld.block

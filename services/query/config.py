@@ -23,7 +23,10 @@ class QueryConfig(ServiceConfig):
     # Protocol 1.1: the baked field and load shedding.
     bake: bool = Field(True, description="bake the fused field of every new map and answer fused requests from it")
     bake_block: float = Field(0.2, gt=0, description="baked field: block edge and coarse spacing (m)")
-    bake_fine: int = Field(4, ge=1, le=16, description="baked field: fine cells per block edge near surfaces")
+    bake_fine: int = Field(2, ge=1, le=16, description="baked field: fine cells per block edge where refined")
+    bake_tol: float = Field(0.005, gt=0, description="baked field: refine a block whose coarse interpolant misses "
+                            "the field at its centre by more (m)")
+    bake_near_surface: bool = Field(False, description="baked field: also refine every block a surface may cross")
     bake_band: float = Field(0.05, ge=0, description="baked field: extra margin (m) of the near-surface test")
     workers: int = Field(2, ge=1, le=64, description="threads evaluating sdf requests")
     queue_max: int = Field(32, ge=1, description="sdf requests waiting; beyond, an immediate 'busy' error reply")

@@ -95,8 +95,9 @@ class QueryEngine:
     @classmethod
     def from_config(cls, cfg) -> "QueryEngine":
         return cls(cfg.max_points, cfg.chunk_points, cfg.device, cfg.fuse_radius, cfg.mesh_resolution,
-                   cfg.mesh_max_cells, cfg.bake, BakeConfig(block=cfg.bake_block, fine=cfg.bake_fine,
-                                                            band=cfg.bake_band))
+                   cfg.mesh_max_cells, cfg.bake,
+                   BakeConfig(block=cfg.bake_block, fine=cfg.bake_fine, band=cfg.bake_band, tol=cfg.bake_tol,
+                              near_surface=cfg.bake_near_surface))
 
     # ------------------------------------------------------------------ map updates
 

@@ -1,36 +1,43 @@
 """The baked field: a sampled copy of an SDF (the query service bakes the fused map) over
 observed space, answered by interpolation in constant time per point.
 
-Layout (sparse blocks, two levels)
-----------------------------------
-Space is cut into cubic blocks of edge ``block`` (aligned with the observed-space grid).
-A block is *baked* when it holds observed space. Every baked block has the **coarse**
-level: value and gradient at its 8 corners (spacing ``block``; corners are shared between
-neighbouring blocks). Blocks near a surface also have the **fine** level: value and
-gradient on an ``(nf+1)^3`` lattice (spacing ``block / nf``). The bake runs coarse to
-fine: the coarse corners are evaluated first and only blocks whose corners say a surface
-may be near (``min |f| < block*sqrt(3)/2 + band``, the 1-Lipschitz bound plus a margin:
-the *core*) get fine samples, together with their 26 neighbours (so the level blend
-below is complete on every core block). Empty space costs 1 evaluation per block.
+Layout (sparse blocks, two levels, coarse to fine)
+--------------------------------------------------
+Space is cut into cubic blocks of edge ``block`` (20 cm; aligned with the observed-space
+grid). A block is *baked* when it holds observed space; nothing else is evaluated. Every
+baked block has the **coarse** level: value and gradient at its 8 corners (spacing
+``block``; corners are shared between neighbouring blocks). The bake then evaluates the
+field at the centre of every block and compares it with the coarse interpolant there:
+where they differ by more than ``tol`` (object edges and corners, curved surfaces, the
+distance field's ridges) the block gets the **fine** level, value and gradient on an
+``(nf+1)^3`` lattice (spacing ``block / nf``, 10 cm), together with its 26 neighbours (so
+that the level blend below is complete on every refined block). Flat walls and smooth
+free space stay coarse: a plane's SDF is exact at any spacing. ``near_surface`` also
+refines every block a surface may cross (``min |f| < block*sqrt(3)/2 + band`` at its
+corners). Measured on the demo office (``aisdf bench query``), refining on the centre
+check needs fewer evaluations than a near-surface band for the same accuracy.
 
 Interpolation (C^1, exact on linear fields)
 -------------------------------------------
-In a cell with corners x_i, values f_i and gradients g_i, with smoothstep weights
-s(t) = 3t^2 - 2t^3 per axis (w_i = product over axes of s or 1 - s)::
+In a cell, the tensor-product cubic Hermite interpolant of the 8 corners' values and
+gradients (cross derivatives zero)::
 
-    f(x) = sum_i w_i(x) * (f_i + g_i . (x - x_i))
+    f(x) = sum_i [ f_i A_i(x) + h (g_i . B_i(x)) ]
 
-Each term is the first-order Taylor expansion at a corner, so the interpolant reproduces
-any linear field exactly (a plane's SDF) and is second-order accurate elsewhere, as the
-gradient-augmented trilinear interpolation of ∇-SDF; smoothstep weights (instead of the
-linear ones) have zero slope at cell faces, which makes the interpolant's gradient
-continuous across cells and blocks: it interpolates the stored value and gradient at
-every sample. The gradient returned is the interpolant's exact gradient.
+with A_i = prod_k a(t_k) and B_i,k = b(t_k) prod_(j != k) a(t_j), a and b the cubic
+Hermite bases of a value and a slope. It interpolates value and gradient at every sample,
+reproduces any linear field exactly (a plane's SDF), and is C^1 across cells and blocks
+(a face's values and normal derivatives depend on that face's corners only). It uses the
+stored gradients as ∇-SDF's gradient-augmented trilinear interpolation does, with cubic
+instead of linear weights: on the demo office at 10 cm it is 2.6x more accurate (mean
+difference to the network 0.085 cm against 0.223 cm). The gradient returned is the
+interpolant's exact gradient.
 
-The two levels are blended with a weight alpha that is 1 on core blocks and 0 on every
+The two levels are blended with a weight alpha that is 1 on refined blocks and 0 on every
 face shared with a coarse-only block (alpha is 1 at a block corner none of whose 8
-blocks is a baked coarse-only one, else 0, blended with the same smoothstep weights), so the whole
-field is C^1 across level borders too: ``f = alpha f_fine + (1 - alpha) f_coarse``.
+blocks is a baked coarse-only one, else 0, blended with the Hermite value basis, i.e.
+smoothstep), so the whole field is C^1 across level borders too:
+``f = alpha f_fine + (1 - alpha) f_coarse``.
 
 Points outside every baked block are reported as not covered; the caller answers them
 another way (the query service: the network).
@@ -56,9 +63,11 @@ except ImportError:  # pragma: no cover - numba is a dependency
 @dataclass
 class BakeConfig:
     block: float = 0.2  # block edge (m), also the coarse spacing
-    fine: int = 4  # fine cells per block edge: spacing block / fine
+    fine: int = 2  # fine cells per block edge: spacing block / fine
     band: float = 0.05  # extra margin (m) on the surface-proximity test of the coarse corners
-    chunk: int = 65_536  # points per evaluation call
+    tol: float = 0.005  # refine a block whose coarse interpolant misses the field at its centre by more (m)
+    near_surface: bool = False  # also refine every block a surface may cross
+    chunk: int = 8_192  # points per evaluation call (bounds the network's activations: ~50 MB at width 128)
 
 
 # ----------------------------------------------------------------------------- kernels
@@ -140,45 +149,49 @@ def _query_py(P, origin, block, state, C, fidx, A, F, nf, want_grad, out_f, out_
 
 
 def _blend(V, i0, j0, k0, tx, ty, tz, h, want_grad):
-    """Smoothstep-weighted blend of the 8 corners' first-order expansions in one cell."""
-    sx = _smooth(tx)
-    sy = _smooth(ty)
-    sz = _smooth(tz)
-    dsx = 6.0 * tx * (1.0 - tx) / h
-    dsy = 6.0 * ty * (1.0 - ty) / h
-    dsz = 6.0 * tz * (1.0 - tz) / h
+    """Cubic Hermite interpolation in one cell from the 8 corners' values and gradients
+    (tensor-product cubic Hermite, cross derivatives zero)."""
     f = 0.0
     gx = 0.0
     gy = 0.0
     gz = 0.0
     for a in range(2):
-        wx = sx if a else 1.0 - sx
-        dwx = dsx if a else -dsx
-        ox = (tx - a) * h
+        ax, bx, dax, dbx = _hermite(tx, a, h)
         for b in range(2):
-            wy = sy if b else 1.0 - sy
-            dwy = dsy if b else -dsy
-            oy = (ty - b) * h
+            ay, by, day, dby = _hermite(ty, b, h)
             for c in range(2):
-                wz = sz if c else 1.0 - sz
-                dwz = dsz if c else -dsz
-                oz = (tz - c) * h
+                az, bz, daz, dbz = _hermite(tz, c, h)
                 v0 = V[i0 + a, j0 + b, k0 + c, 0]
                 v1 = V[i0 + a, j0 + b, k0 + c, 1]
                 v2 = V[i0 + a, j0 + b, k0 + c, 2]
                 v3 = V[i0 + a, j0 + b, k0 + c, 3]
-                p = v0 + v1 * ox + v2 * oy + v3 * oz
-                w = wx * wy * wz
-                f += w * p
+                f += v0 * ax * ay * az + v1 * bx * ay * az + v2 * ax * by * az + v3 * ax * ay * bz
                 if want_grad:
-                    gx += dwx * wy * wz * p + w * v1
-                    gy += wx * dwy * wz * p + w * v2
-                    gz += wx * wy * dwz * p + w * v3
+                    gx += v0 * dax * ay * az + v1 * dbx * ay * az + v2 * dax * by * az + v3 * dax * ay * bz
+                    gy += v0 * ax * day * az + v1 * bx * day * az + v2 * ax * dby * az + v3 * ax * day * bz
+                    gz += v0 * ax * ay * daz + v1 * bx * ay * daz + v2 * ax * by * daz + v3 * ax * ay * dbz
     return f, gx, gy, gz
+
+
+def _hermite(t, corner, h):
+    """Cubic Hermite basis on [0, 1] for the value (A) and the slope (B, times h) of the
+    corner at t = ``corner``, and their derivatives with respect to x (t = x / h)."""
+    if corner == 0:
+        A = 2.0 * t * t * t - 3.0 * t * t + 1.0
+        dA = (6.0 * t * t - 6.0 * t) / h
+        Bn = t * t * t - 2.0 * t * t + t
+        dB = 3.0 * t * t - 4.0 * t + 1.0
+    else:
+        A = -2.0 * t * t * t + 3.0 * t * t
+        dA = (-6.0 * t * t + 6.0 * t) / h
+        Bn = t * t * t - t * t
+        dB = 3.0 * t * t - 2.0 * t
+    return A, h * Bn, dA, dB
 
 
 if _njit is not None:
     _smooth = _njit(_smooth)
+    _hermite = _njit(_hermite)
     _blend = _njit(_blend)
     _query_kernel = _njit(_query_py)
 else:  # pragma: no cover
@@ -270,7 +283,19 @@ def bake(fn, observed, cfg: BakeConfig | None = None) -> BakedField:
         for b in (0, 1):
             for c in (0, 1):
                 minc = np.fmin(minc, absf[a:a + nb[0], b:b + nb[1], c:c + nb[2]])
-    core = (state > 0) & (minc < B * math.sqrt(3) / 2 + cfg.band)
+    near = minc < B * math.sqrt(3) / 2 + cfg.band
+    # Coarse to fine: check the coarse interpolant at the centre of every baked block
+    # against the field itself; where it is off by more than ``tol`` (object edges, the
+    # distance field's ridges, curved surfaces) the block gets the fine level.
+    ones = np.full(tuple(nb), -1, np.int32)
+    coarse_only = BakedField(origin, B, (state > 0).astype(np.int8), C, ones, np.zeros(tuple(nb + 1), np.float32),
+                             np.zeros((0, nf + 1, nf + 1, nf + 1, 4), np.float32), nf)
+    centres = origin + (blocks + 0.5) * B
+    centre_vals = evaluate(centres)
+    pred = coarse_only.query(centres, gradient=False)[0]
+    bent = np.zeros(tuple(nb), bool)
+    bent[blocks[:, 0], blocks[:, 1], blocks[:, 2]] = np.abs(pred - centre_vals[:, 0]) > cfg.tol
+    core = (state > 0) & ((near & cfg.near_surface) | bent)
     fine = _dilate26(core) & (state > 0)
     state[fine] = 2
     fblocks = np.argwhere(fine)
@@ -297,9 +322,19 @@ def bake(fn, observed, cfg: BakeConfig | None = None) -> BakedField:
         uz = ukey % dims[2]
         uy = (ukey // dims[2]) % dims[1]
         ux = ukey // (dims[1] * dims[2])
-        vals = evaluate(origin + np.stack([ux, uy, uz], -1) * (B / nf))
+        vals = np.empty((len(ukey), 4), np.float32)
+        todo = np.ones(len(ukey), bool)
+        if nf % 2 == 0:  # block centres are fine lattice points: evaluated already
+            cl = blocks * nf + nf // 2
+            ckey = (cl[:, 0] * dims[1] + cl[:, 1]) * dims[2] + cl[:, 2]
+            pos = np.searchsorted(ukey, ckey)
+            hit = (pos < len(ukey)) & (ukey[np.minimum(pos, len(ukey) - 1)] == ckey)
+            vals[pos[hit]] = centre_vals[hit]
+            todo[pos[hit]] = False
+        vals[todo] = evaluate(origin + np.stack([ux[todo], uy[todo], uz[todo]], -1) * (B / nf))
         F[...] = vals[inv.reshape(-1)].reshape(F.shape)
     stats = {"blocks": int(len(blocks)), "fine_blocks": int(len(fblocks)), "core_blocks": int(core.sum()),
+             "bent_blocks": int((bent & (state > 0)).sum()), "near_blocks": int((near & (state > 0)).sum()),
              "evaluations": int(evals), "coarse_s": round(t_coarse, 3),
              "bake_s": round(time.perf_counter() - t0, 3)}
     field = BakedField(origin, B, state, C, fidx, A, F, nf, stats)
