@@ -132,8 +132,10 @@ def run(duration: float = 180.0, out: str | Path = "runs/demo", building: str = 
                 el = time.monotonic() - t0
                 fi = transport.get_latest(session, keys.key(ns, "info/frontend"), 1.0) or {}
                 mi = transport.get_latest(session, keys.key(ns, "info/mapper"), 1.0) or {}
+                qi = transport.get_latest(session, keys.key(ns, "info/query"), 1.0) or {}
                 row = {"t": round(el, 1), "frames": fi.get("frames", 0), "keyframes": fi.get("keyframes", 0),
-                       "steps": mi.get("steps", 0), "map_version": mi.get("version", 0)}
+                       "steps": mi.get("steps", 0), "map_version": mi.get("version", 0),
+                       "baked_version": qi.get("baked_version"), "answer_lag_s": (qi.get("lag") or {}).get("behind_s")}
                 if row["map_version"] and el - last_eval >= 10:
                     pts = eval_points_from(seq, row["frames"], n_eval, rng)
                     r = client.query(pts)
@@ -150,7 +152,8 @@ def run(duration: float = 180.0, out: str | Path = "runs/demo", building: str = 
                 if not quiet and (tty or "sdf_error_cm" in row):
                     err = f"{row['sdf_error_cm']:6.2f} cm" if "sdf_error_cm" in row else "   ...   "
                     line = (f"[{el:5.0f}/{duration:.0f} s] frames {row['frames']:5d}  keyframes {row['keyframes']:4d}  "
-                            f"steps {row['steps']:6d}  map v{row['map_version']:<5d} SDF error {err}")
+                            f"steps {row['steps']:6d}  map v{row['map_version']:<5d} baked v{row['baked_version'] or 0:<5d} "
+                            f"SDF error {err}")
                     # On a terminal one line is redrawn; in a log, a line per evaluation.
                     sys.stdout.write(f"\r{line}" if tty else f"{line}\n")
                     sys.stdout.flush()
@@ -170,11 +173,15 @@ def finish(client, seq, out: Path, recorder, rng, history, elapsed, quiet) -> di
     pts = eval_points_from(seq, frames_seen, 200_000, rng)
     gt = seq.gt_sdf(pts)
     errs = {}
-    for src in ("fused", "implicit"):
-        r = client.query(pts, source=src)
-        errs[src] = round(100 * float(np.mean(np.abs(r.sdf - gt))), 2)
+    for name, src, exact in (("fused", "fused", False), ("fused_exact", "fused", True), ("implicit", "implicit", True)):
+        r = client.query(pts, source=src, exact=exact)
+        errs[name] = round(100 * float(np.mean(np.abs(r.sdf - gt))), 2)
+        errs[name + "_baked"] = r.baked
+    lags = [h["answer_lag_s"] for h in history if h.get("answer_lag_s") is not None]
     summary = {"elapsed_s": round(elapsed, 1), "frames": frames_seen, "history": history,
+               "answer_lag_s": {"max": max(lags), "mean": round(float(np.mean(lags)), 3)} if lags else None,
                "sdf_error_cm": errs["fused"], "sdf_error_implicit_cm": errs["implicit"],
+               "sdf_error_fused_network_cm": errs["fused_exact"], "answered_baked": errs["fused_baked"],
                "eval_points": len(pts), "planner": planner_example(client, seq)}
     try:
         m = client.mesh(0.05)
@@ -192,10 +199,14 @@ def finish(client, seq, out: Path, recorder, rng, history, elapsed, quiet) -> di
     (out / "summary.json").write_text(json.dumps(summary, indent=2))
     if not quiet:
         p = summary["planner"]
-        print(f"SDF error (iSDF protocol, {len(pts)} points along seen rays): {errs['fused']:.2f} cm fused, "
-              f"{errs['implicit']:.2f} cm network alone")
+        print(f"SDF error (iSDF protocol, {len(pts)} points along seen rays): {errs['fused']:.2f} cm fused "
+              f"({'baked field' if errs['fused_baked'] else 'network'}; {errs['fused_exact']:.2f} cm fused from the "
+              f"network), {errs['implicit']:.2f} cm network alone")
         print(f"planner: path of {p['points']} points, collision cost {p['cost']:.2f} (truth {p['cost_truth']:.2f}), "
               f"min clearance {p['min_clearance']:.2f} m (truth {p['min_clearance_truth']:.2f} m)")
         print(f"surfels: {summary['surfels']}; mesh: {summary['mesh']}")
+        if summary["answer_lag_s"]:
+            print(f"answers trailed the newest weights by {summary['answer_lag_s']['mean']:.2f} s on average, "
+                  f"{summary['answer_lag_s']['max']:.2f} s at most (the bake of each new map)")
         print(f"wrote {out / 'summary.json'}, {out / 'demo.rrd'}")
     return summary
