@@ -15,13 +15,16 @@ class QueryConfig(ServiceConfig):
     max_points: int = Field(1_000_000, ge=1, description="largest batch answered; above it: too_large")
     chunk_points: int = Field(65_536, ge=1, description="points evaluated per network pass (bounds memory)")
     device: Literal["auto", "cpu", "cuda"] = Field("auto", description="auto = cuda when available")
-    torch_threads: int | None = Field(None, ge=1, description="torch CPU threads; None keeps torch's default")
+    torch_threads: int | None = Field(1, ge=1, description="torch CPU threads per evaluation; None keeps torch's "
+                                      "default. Parallelism comes from `workers` and `bake_threads` instead: several "
+                                      "threads each running single-threaded torch do not spin-wait on a busy machine")
     fuse_radius: float = Field(0.5, gt=0, description="fused source uses a surfel only when it is this close (m)")
     mesh_resolution: float = Field(0.05, gt=0, description="default marching-cubes voxel size (m)")
     mesh_max_cells: int = Field(16_000_000, ge=1, description="largest marching-cubes grid; above it: too_large")
     weights_retry_s: float = Field(2.0, gt=0, description="how often to ask for the latest map until one arrives")
     # Protocol 1.1: the baked field and load shedding.
     bake: bool = Field(True, description="bake the fused field of every new map and answer fused requests from it")
+    bake_threads: int = Field(2, ge=1, le=64, description="threads evaluating the network while baking")
     bake_block: float = Field(0.2, gt=0, description="baked field: block edge and coarse spacing (m)")
     bake_fine: int = Field(2, ge=1, le=16, description="baked field: fine cells per block edge where refined")
     bake_tol: float = Field(0.005, gt=0, description="baked field: refine a block whose coarse interpolant misses "

@@ -22,6 +22,7 @@ import logging
 import threading
 import time
 from collections import deque
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -36,6 +37,7 @@ from aisdf.observed import ObservedGrid
 from aisdf.surfel_types import Surfels
 
 log = logging.getLogger(__name__)
+BAKE_CHUNK = 4096  # network points per pass while baking: bounds the activations (~25 MB at width 128)
 
 
 def pick_device(name: str) -> torch.device:
@@ -71,7 +73,7 @@ class BakedMap:
 class QueryEngine:
     def __init__(self, max_points: int = 1_000_000, chunk_points: int = 65_536, device: str = "auto",
                  fuse_radius: float = 0.5, mesh_resolution: float = 0.05, mesh_max_cells: int = 16_000_000,
-                 bake: bool = True, bake_config: BakeConfig | None = None):
+                 bake: bool = True, bake_config: BakeConfig | None = None, bake_threads: int = 2):
         self.max_points = max_points
         self.chunk_points = chunk_points
         self.device = pick_device(device)
@@ -80,6 +82,7 @@ class QueryEngine:
         self.mesh_max_cells = mesh_max_cells
         self.bake_enabled = bake
         self.bake_config = bake_config or BakeConfig()
+        self.bake_threads = bake_threads
         self._state: MapState | None = None
         self._surfels: tuple[tuple[int, int], Surfels] | None = None
         self._baked: BakedMap | None = None
@@ -97,7 +100,7 @@ class QueryEngine:
         return cls(cfg.max_points, cfg.chunk_points, cfg.device, cfg.fuse_radius, cfg.mesh_resolution,
                    cfg.mesh_max_cells, cfg.bake,
                    BakeConfig(block=cfg.bake_block, fine=cfg.bake_fine, band=cfg.bake_band, tol=cfg.bake_tol,
-                              near_surface=cfg.bake_near_surface))
+                              near_surface=cfg.bake_near_surface), cfg.bake_threads)
 
     # ------------------------------------------------------------------ map updates
 
@@ -157,15 +160,33 @@ class QueryEngine:
 
     # ------------------------------------------------------------------ baking
 
-    def fused_fn(self, state: MapState):
-        """points (M, 3) -> (sdf, grad) of the fused field of ``state`` (what ``fused`` answers)."""
-        has_surfels = state.surfels is not None and len(state.surfels) > 0
+    def fused_fn(self, state: MapState, chunk: int = BAKE_CHUNK):
+        """points (M, 3) -> (sdf, grad) of the fused field of ``state`` (what ``fused``
+        answers), in bounded memory: the network in chunks of ``chunk`` points, the
+        surfels in chunks of candidate pairs."""
+        from aisdf.surfel_map import ExplicitSdf
+
+        explicit = ExplicitSdf(state.surfels, chunk_pairs=131_072) if state.surfels is not None and len(
+            state.surfels) else None
 
         def fn(pts: np.ndarray):
-            sdf, grad = self._implicit(state.net, pts, True)
-            if has_surfels:
-                d_e, g_e = self._explicit(state.surfels, pts)
-                sdf, grad, _ = fuse(sdf, grad, d_e, g_e, self.fuse_radius)
+            sdf = np.empty(len(pts), np.float32)
+            grad = np.empty((len(pts), 3), np.float32)
+
+            def one(i: int) -> None:
+                sdf[i:i + chunk], grad[i:i + chunk] = self._implicit(state.net, pts[i:i + chunk], True)
+
+            starts = range(0, len(pts), chunk)
+            if self.bake_threads > 1 and self.device.type == "cpu" and len(starts) > 1:
+                # torch releases the GIL inside its ops: chunks run side by side.
+                with ThreadPoolExecutor(self.bake_threads, thread_name_prefix="bake") as ex:
+                    list(ex.map(one, starts))
+            else:
+                for i in starts:
+                    one(i)
+            if explicit is not None:
+                d_e, g_e, _ = explicit(pts.astype(np.float64))
+                sdf, grad, _ = fuse(sdf, grad, d_e.astype(np.float32), g_e.astype(np.float32), self.fuse_radius)
             return sdf, grad
 
         return fn

@@ -67,7 +67,6 @@ class BakeConfig:
     band: float = 0.05  # extra margin (m) on the surface-proximity test of the coarse corners
     tol: float = 0.005  # refine a block whose coarse interpolant misses the field at its centre by more (m)
     near_surface: bool = False  # also refine every block a surface may cross
-    chunk: int = 8_192  # points per evaluation call (bounds the network's activations: ~50 MB at width 128)
 
 
 # ----------------------------------------------------------------------------- kernels
@@ -239,7 +238,8 @@ def _dilate26(mask: np.ndarray) -> np.ndarray:
 
 
 def bake(fn, observed, cfg: BakeConfig | None = None) -> BakedField:
-    """Bake ``fn`` (points (M, 3) float32 -> (sdf (M,), grad (M, 3))) over the observed
+    """Bake ``fn`` (points (M, 3) float32 -> (sdf (M,), grad (M, 3)); called with all the
+    points of a stage at once, it bounds its own memory) over the observed
     space ``observed`` (an :class:`aisdf.observed.ObservedGrid`), coarse to fine."""
     cfg = cfg or BakeConfig()
     t0 = time.perf_counter()
@@ -259,10 +259,10 @@ def bake(fn, observed, cfg: BakeConfig | None = None) -> BakedField:
     def evaluate(pts: np.ndarray) -> np.ndarray:
         nonlocal evals
         out = np.empty((len(pts), 4), np.float32)
-        for i in range(0, len(pts), cfg.chunk):
-            f, g = fn(pts[i:i + cfg.chunk].astype(np.float32))
-            out[i:i + cfg.chunk, 0] = f
-            out[i:i + cfg.chunk, 1:] = g
+        if len(pts):
+            f, g = fn(pts.astype(np.float32))  # fn chunks its own work (memory)
+            out[:, 0] = f
+            out[:, 1:] = g
         evals += len(pts)
         return out
 

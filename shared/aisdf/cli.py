@@ -19,7 +19,7 @@ def _demo(args) -> None:
 def _bench_query(args) -> None:
     from .bench.query import report, run
 
-    res = run(out=args.out, sizes=args.sizes, repeats=args.repeats, threads=args.threads,
+    res = run(out=args.out, sizes=args.sizes, repeats=args.repeats, threads=args.threads, bake_threads=args.bake_threads,
               train_steps=args.train_steps, planners=args.planners, planner_s=args.planner_s, lag_s=args.lag_s,
               n_eval=args.eval_points)
     print(report(res))
@@ -66,7 +66,9 @@ def main(argv: list[str] | None = None) -> None:
                         "writes query.json.")
     q.add_argument("--sizes", type=int, nargs="+", default=[1_000, 10_000, 100_000])
     q.add_argument("--repeats", type=int, default=20)
-    q.add_argument("--threads", type=int, help="torch threads in both the service and in-process")
+    q.add_argument("--threads", type=int, help="torch threads per evaluation, in the service and in-process "
+                   "(default 1, the service's)")
+    q.add_argument("--bake-threads", type=int, default=2, help="threads evaluating the network while baking")
     q.add_argument("--train-steps", type=int, default=900, help="training steps of the demo map (default 900)")
     q.add_argument("--planners", type=int, default=8)
     q.add_argument("--planner-s", type=float, default=60.0, help="seconds of the concurrent-planners run")
