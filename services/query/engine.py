@@ -160,12 +160,13 @@ class QueryEngine:
 
     # ------------------------------------------------------------------ baking
 
-    def fused_fn(self, state: MapState, chunk: int = BAKE_CHUNK):
+    def fused_fn(self, state: MapState, chunk: int | None = None):
         """points (M, 3) -> (sdf, grad) of the fused field of ``state`` (what ``fused``
         answers), in bounded memory: the network in chunks of ``chunk`` points, the
         surfels in chunks of candidate pairs."""
         from aisdf.surfel_map import ExplicitSdf
 
+        chunk = chunk or (BAKE_CHUNK if self.device.type == "cpu" else self.chunk_points)  # on a GPU: big batches
         explicit = ExplicitSdf(state.surfels, chunk_pairs=131_072) if state.surfels is not None and len(
             state.surfels) else None
 
