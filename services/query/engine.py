@@ -37,7 +37,7 @@ from aisdf.observed import ObservedGrid
 from aisdf.surfel_types import Surfels
 
 log = logging.getLogger(__name__)
-BAKE_CHUNK = 4096  # network points per pass while baking: bounds the activations (~25 MB at width 128)
+BAKE_CHUNK = 2048  # network points per pass while baking: bounds the activations (~15 MB at width 128)
 
 
 def pick_device(name: str) -> torch.device:
