@@ -14,8 +14,8 @@ import re
 from collections.abc import Iterator
 from pathlib import Path
 
-import cv2
 import numpy as np
+from PIL import Image
 
 from ..geometry import intrinsics
 
@@ -131,9 +131,11 @@ def require_data(sub: str = "") -> Path:
 
 def read_depth_png(path: Path | str, scale: float, invalid: tuple[int, ...] = ()) -> np.ndarray:
     """16-bit depth PNG -> float32 metres (value / scale); 0 and ``invalid`` values -> 0."""
-    raw = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
-    if raw is None:
-        raise DataMissingError(f"cannot read depth image {path}")
+    try:
+        with Image.open(path) as img:
+            raw = np.asarray(img)
+    except (OSError, ValueError):  # missing, unreadable or not an image
+        raise DataMissingError(f"cannot read depth image {path}") from None
     if raw.ndim != 2:
         raise ValueError(f"{path}: expected a single-channel depth image, got shape {raw.shape}")
     depth = raw.astype(np.float32) / np.float32(scale)
@@ -148,8 +150,7 @@ def write_depth_png(path: Path | str, depth_m: np.ndarray, scale: float) -> None
     raw = np.where(np.isfinite(d) & (d > 0), np.round(d * scale), 0.0)
     if raw.max(initial=0) > 65535:
         raise ValueError(f"depth {d[np.isfinite(d)].max():.2f} m overflows 16 bits at scale {scale}")
-    if not cv2.imwrite(str(path), raw.astype(np.uint16)):
-        raise OSError(f"cannot write {path}")
+    Image.fromarray(raw.astype(np.uint16)).save(str(path), format="PNG")
 
 
 def read_matrix(path: Path | str) -> np.ndarray:
