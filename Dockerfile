@@ -1,22 +1,50 @@
-# One image for the three services (docker-compose.yml picks the command).
-FROM python:3.11-slim
+# One image for the three services (docker-compose.yml picks the command): the services'
+# dependencies only (no benchmark, viewer or test extras), torch's CPU build, and none of
+# torch's tests, test binaries or C++ headers. Built in one stage, copied into a fresh one.
+FROM python:3.11-slim AS build
 
-ENV PYTHONUNBUFFERED=1 PIP_NO_CACHE_DIR=1
-WORKDIR /app
+ENV PIP_NO_CACHE_DIR=1 PIP_DISABLE_PIP_VERSION_CHECK=1
+RUN apt-get update && apt-get install -y --no-install-recommends binutils && rm -rf /var/lib/apt/lists/*
 
-# open3d (baseline, mesh ray casting) needs libusb and libgomp at import.
-RUN apt-get update && apt-get install -y --no-install-recommends libusb-1.0-0 libgomp1 \
-    && rm -rf /var/lib/apt/lists/*
-
-# CPU build of torch by default; for CUDA build with --build-arg TORCH_INDEX=https://download.pytorch.org/whl/cu124
+# torch's CPU build from PyTorch's CPU index; for CUDA: --build-arg TORCH_INDEX=https://download.pytorch.org/whl/cu124.
+# Where download.pytorch.org is out of reach, TORCH_FIND_LINKS names a folder or URL (reachable from the build)
+# holding a CPU wheel of torch; its dependencies then come from PyPI.
 ARG TORCH_INDEX=https://download.pytorch.org/whl/cpu
-RUN pip install --index-url ${TORCH_INDEX} "torch>=2.2,<2.14"
+ARG TORCH_FIND_LINKS=
+RUN if [ -n "$TORCH_FIND_LINKS" ]; then \
+        pip install --no-compile --no-index --no-deps --find-links "$TORCH_FIND_LINKS" "torch>=2.2,<2.14" \
+        && pip install --no-compile "torch>=2.2,<2.14"; \
+    else pip install --no-compile --index-url "$TORCH_INDEX" "torch>=2.2,<2.14"; fi
 
+WORKDIR /src
 COPY pyproject.toml README.md ./
 COPY shared ./shared
 COPY services ./services
-RUN pip install . && aisdf --version && aisdf-mapper --version && aisdf-query --version && aisdf-frontend --version
+# No byte code in the image (Python writes it in each container at first import); torch's test
+# suite, test binaries, headers and CMake files out; symbols stripped from the two largest libraries.
+RUN pip install . --no-compile \
+    && cd /usr/local/lib/python3.11/site-packages \
+    && rm -rf torch/test torch/include torch/share torch/bin/test_* torch/bin/*Test torch/bin/protoc* \
+    && strip --strip-unneeded torch/lib/libtorch_cpu.so llvmlite/binding/libllvmlite.so \
+    && find . -name __pycache__ -type d -prune -exec rm -rf {} + \
+    && python -c "import torch, sys; sys.exit('torch is not the CPU build' if torch.version.cuda and '${TORCH_INDEX}'.endswith('/cpu') else 0)"
+
+FROM python:3.11-slim
+ENV PYTHONUNBUFFERED=1 PIP_NO_CACHE_DIR=1 PIP_DISABLE_PIP_VERSION_CHECK=1
+COPY --from=build /usr/local/lib/python3.11/site-packages /usr/local/lib/python3.11/site-packages
+COPY --from=build /usr/local/bin/aisdf* /usr/local/bin/
+# A smoke test: every command starts; the mapper trains a step and the query service answers from it.
+RUN aisdf-mapper --version && aisdf-query --version && aisdf-frontend --version && aisdf-router --version \
+    && aisdf-health --help >/dev/null \
+    && python -c "import aisdf_mapper.main, aisdf_query.main, aisdf_frontend.main, numpy as np; \
+from aisdf.pipeline import MappingPipeline; from aisdf.synthetic import SyntheticSequence; \
+from aisdf.mapping.frames import Frame; \
+f = SyntheticSequence(building='atlanta', n_frames=10, H=30, W=40).frame(0); \
+p = MappingPipeline.from_settings('cpu', {'network': {'width': 16}, 'n_rays': 10}); \
+p.add_keyframe(Frame(f['frame_id'], f['stamp'], f['depth'], f['K'], f['T_WC'])); p.step(); \
+print('smoke test: trained', p.steps, 'step(s)')" \
+    && find /usr/local/lib/python3.11/site-packages -name __pycache__ -type d -prune -exec rm -rf {} +
 
 # Zenoh's default port, for a service that listens.
 EXPOSE 7447
-CMD ["aisdf", "--help"]
+CMD ["aisdf-mapper", "--help"]

@@ -1,12 +1,14 @@
 # Two commands, each sets everything up from nothing (idempotently) first:
 #   make demo   - the whole stack on the built-in synthetic building, on loopback
 #   make test   - the test suite
+#   make compose-test - builds the image, runs docker-compose.yml on the host network and checks
+#                  it (needs a Docker engine; not part of make test)
 PYTHON ?= python3
 VENV ?= .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.aisdf-installed
 
-.PHONY: setup demo test bench-query bench clean
+.PHONY: setup demo test compose-test bench-query bench clean
 
 setup: $(STAMP)
 
@@ -25,6 +27,9 @@ demo: setup
 
 test: setup
 	$(VENV)/bin/pytest -q $(ARGS)
+
+compose-test: setup
+	$(PY) tests/run_compose_test.py
 
 bench-query: setup
 	$(VENV)/bin/aisdf bench query $(ARGS)

@@ -69,3 +69,41 @@ def test_image_recipe_installs_the_project():
     for src in ("pyproject.toml", "shared", "services"):
         assert src in text
     assert "<2.14" in text
+
+
+def test_compose_health_checks_and_start_order():
+    services = yaml.safe_load((ROOT / "docker-compose.yml").read_text())["services"]
+    for name, svc in services.items():
+        assert svc.get("healthcheck", {}).get("test"), f"{name} has no health check"
+    for name in ("query", "mapper", "frontend"):
+        assert services[name]["healthcheck"]["test"][:3] == ["CMD", "aisdf-health", name]
+        assert services[name]["depends_on"]["zenoh"] == {"condition": "service_healthy"}
+    assert services["frontend"]["depends_on"]["mapper"] == {"condition": "service_healthy"}
+
+
+def test_overrides_keep_traffic_on_the_host_network():
+    host = yaml.safe_load((ROOT / "deploy/compose.host.yml").read_text())["services"]
+    base = yaml.safe_load((ROOT / "docker-compose.yml").read_text())["services"]
+    assert set(host) == set(base) and all(s["network_mode"] == "host" for s in host.values())
+    tls = yaml.safe_load((ROOT / "deploy/tls/compose.tls.yml").read_text())["services"]
+    for name in ("query", "mapper", "frontend"):  # each service gets its own key only
+        keys = [v for v in tls[name]["volumes"] if v.endswith(".key:ro") or ".key:" in v]
+        assert keys == [f"./deploy/tls/certs/{name}.key:/etc/aisdf/tls/{name}.key:ro"]
+    for text in [(ROOT / f).read_text() for f in ("docker-compose.yml", "deploy/compose.host.yml",
+                                                   "deploy/tls/compose.tls.yml")]:
+        assert "networks:" not in text
+
+
+def test_build_context_leaves_out_local_state():
+    ignored = (ROOT / ".dockerignore").read_text().split()
+    for path in (".git/", ".venv/", "runs/", "results/", "tests/"):
+        assert path in ignored
+
+
+def test_services_need_no_benchmark_or_viewer_dependencies():
+    deps = " ".join(PYPROJECT["project"]["dependencies"])
+    for heavy in ("rerun", "open3d", "matplotlib", "pyarrow", "opencv"):
+        assert heavy not in deps
+    extras = PYPROJECT["project"]["optional-dependencies"]
+    assert "rerun-sdk" in " ".join(extras["viewer"]) and "open3d" in " ".join(extras["bench"])
+    assert "aisdf[bench,viewer]" in extras["dev"]
