@@ -29,7 +29,7 @@ test: setup
 	$(VENV)/bin/pytest -q $(ARGS)
 
 compose-test: setup
-	$(PY) tests/run_compose_test.py
+	$(PY) tests/run_compose_test.py $(ARGS)
 
 bench-query: setup
 	$(VENV)/bin/aisdf bench query $(ARGS)

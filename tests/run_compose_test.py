@@ -6,6 +6,11 @@ selected is in the map, restarts the mapper and checks it resumes (its keyframes
 checkpoint volume, a newer epoch, the query service answering with the new map), and
 brings the stack down (volume included).
 
+``--tls``: the same over the TLS profile (deploy/tls/compose.tls.yml, certificates made by
+deploy/tls/make-certs.sh in deploy/tls/certs, the default namespace the access control
+names); the planner and the checks connect with the planner's and the monitor's
+certificates, and a client without a certificate must not connect.
+
 Environment: AISDF_ZENOH_PORT (default 37447), AISDF_TORCH_FIND_LINKS (a URL or folder,
 reachable from the build, holding a CPU wheel of torch, for machines that cannot reach
 download.pytorch.org; a local folder is served on 127.0.0.1 for the build), AISDF_NO_BUILD=1
@@ -14,7 +19,7 @@ to use an image already built, COMPOSE (default: ``docker compose``, else ``dock
 
 from __future__ import annotations
 
-import json
+import argparse
 import os
 import re
 import shlex
@@ -47,8 +52,12 @@ def compose_cmd() -> list[str]:
     return ["docker", "compose"] if ok else ["docker-compose"]
 
 
+TLS = "--tls" in sys.argv[1:]
+if TLS:
+    NS, PROJECT = "aisdf", PROJECT + "-tls"
 COMPOSE = compose_cmd() + ["-p", PROJECT, "-f", "docker-compose.yml", "-f", "deploy/compose.host.yml"]
-ENV = {**os.environ, "AISDF_ZENOH_PORT": str(PORT), "AISDF_NAMESPACE": NS}
+COMPOSE += ["-f", "deploy/tls/compose.tls.yml"] if TLS else []
+ENV = {**os.environ, "AISDF_ZENOH_PORT": str(PORT), "AISDF_NAMESPACE": NS, "AISDF_ZENOH_PROTO": "tls" if TLS else "tcp"}
 
 
 def run(cmd: list[str], check: bool = True, quiet: bool = False) -> subprocess.CompletedProcess:
@@ -100,7 +109,38 @@ def answer(session):
         return None
 
 
+def client_options() -> tuple[ZenohOptions, ZenohOptions]:
+    """(planner, monitor) Zenoh options: plain TCP, or the TLS profile's identities."""
+    if not TLS:
+        opts = ZenohOptions(mode="client", connect=[f"tcp/127.0.0.1:{PORT}"], multicast_scouting=False)
+        return opts, opts
+    certs = ROOT / "deploy/tls/certs"
+    run(["bash", "deploy/tls/make-certs.sh", str(certs)])
+    out = []
+    for name in ("planner", "monitor"):
+        text = (ROOT / f"deploy/tls/{name}.json5").read_text().replace("/etc/aisdf/tls", str(certs))
+        path = certs / f"compose-test-{name}.json5"
+        path.write_text(text.replace("tls/zenoh:7447", f"tls/127.0.0.1:{PORT}"))
+        out.append(ZenohOptions(config_file=path))
+    return out[0], out[1]
+
+
+def refused_without_certificate() -> bool:
+    opts = ZenohOptions(mode="client", connect=[f"tls/127.0.0.1:{PORT}", f"tcp/127.0.0.1:{PORT}"],
+                        multicast_scouting=False)
+    try:
+        with transport.open_session(opts) as s:
+            time.sleep(0.5)
+            return not list(s.info.routers_zid())
+    except Exception:  # noqa: BLE001 - ZError: no endpoint accepted the session
+        return True
+
+
 def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--tls", action="store_true", help="over the TLS profile (deploy/tls)")
+    p.parse_args()
+    planner_opts, monitor_opts = client_options()
     if os.environ.get("AISDF_NO_BUILD") != "1":
         build()
     size = run(["docker", "image", "inspect", "aisdf:latest", "--format", "{{.Size}}"]).stdout.strip()
@@ -108,15 +148,17 @@ def main() -> None:
     assert int(size) <= 1.2e9, "the image is above 1.2 GB"
     run(COMPOSE + ["down", "-v"], check=False)
     try:
-        say(f"up: router on tcp/127.0.0.1:{PORT}, namespace {NS}")
+        say(f"up: router on {'tls' if TLS else 'tcp'}/127.0.0.1:{PORT}, namespace {NS}")
         run(COMPOSE + ["up", "-d", "--no-build"])
         services = ("zenoh", "mapper", "query", "frontend")
         states = wait_for(lambda: (lambda s: s if all(v.startswith("healthy") for v in s.values()) else None)(
             {n: health(n) for n in services}), 240, period=2.0, what="every container healthy")
         say(f"healthy: {states}")
-        opts = ZenohOptions(mode="client", connect=[f"tcp/127.0.0.1:{PORT}"], multicast_scouting=False)
-        with transport.open_session(opts) as s:
-            r = wait_for(lambda: answer(s), 180, period=1.0, what="a planner's answer")
+        if TLS:
+            assert refused_without_certificate(), "a client without a certificate connected"
+            say("a client without a certificate (TLS or plain TCP): refused")
+        with transport.open_session(planner_opts) as planner, transport.open_session(monitor_opts) as s:
+            r = wait_for(lambda: answer(planner), 180, period=1.0, what="a planner's answer")
             sdf = ", ".join(f"{x:.3f}" for x in protocol.decode_array(r["sdf"], "sdf"))
             say(f"planner: sdf [{sdf}] m from map version "
                 f"{r['map_version']} (epoch {r.get('map_epoch')}, baked {r.get('baked')})")
@@ -142,7 +184,7 @@ def main() -> None:
             t = time.monotonic()
             resumed = wait_for(lambda: (lambda i: i if i and i["epoch"] > before["epoch"] else None)(info(s, "mapper")),
                                120, period=1.0, what="the restarted mapper")
-            r = wait_for(lambda: (lambda a: a if a and a.get("map_epoch", 0) == resumed["epoch"] else None)(answer(s)),
+            r = wait_for(lambda: (lambda a: a if a and a.get("map_epoch", 0) == resumed["epoch"] else None)(answer(planner)),
                          120, period=0.5, what="answers from the restarted mapper's map")
             say(f"mapper resumed: epoch {resumed['epoch']}, version {resumed['version']}, {resumed['keyframes']} "
                 f"keyframes; planner answered from map version {r['map_version']} (epoch {r['map_epoch']}) "
