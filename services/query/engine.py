@@ -73,7 +73,8 @@ class BakedMap:
 class QueryEngine:
     def __init__(self, max_points: int = 1_000_000, chunk_points: int = 65_536, device: str = "auto",
                  fuse_radius: float = 0.5, mesh_resolution: float = 0.05, mesh_max_cells: int = 16_000_000,
-                 bake: bool = True, bake_config: BakeConfig | None = None, bake_threads: int = 2):
+                 bake: bool = True, bake_config: BakeConfig | None = None, bake_threads: int = 2,
+                 bake_duty: float = 0.5):
         self.max_points = max_points
         self.chunk_points = chunk_points
         self.device = pick_device(device)
@@ -83,6 +84,7 @@ class QueryEngine:
         self.bake_enabled = bake
         self.bake_config = bake_config or BakeConfig()
         self.bake_threads = bake_threads
+        self.bake_duty = bake_duty
         self._state: MapState | None = None
         self._surfels: tuple[tuple[int, int], Surfels] | None = None
         self._baked: BakedMap | None = None
@@ -100,7 +102,7 @@ class QueryEngine:
         return cls(cfg.max_points, cfg.chunk_points, cfg.device, cfg.fuse_radius, cfg.mesh_resolution,
                    cfg.mesh_max_cells, cfg.bake,
                    BakeConfig(block=cfg.bake_block, fine=cfg.bake_fine, band=cfg.bake_band, tol=cfg.bake_tol,
-                              near_surface=cfg.bake_near_surface), cfg.bake_threads)
+                              near_surface=cfg.bake_near_surface), cfg.bake_threads, cfg.bake_duty)
 
     # ------------------------------------------------------------------ map updates
 
@@ -219,11 +221,16 @@ class QueryEngine:
             if not self._bake_wanted.wait(0.5):
                 continue
             self._bake_wanted.clear()
+            t = time.monotonic()
             try:
                 self.bake_now()
             except Exception:  # noqa: BLE001 - keep answering from the last good bake / the network
                 self.bake_failures += 1
                 log.exception("bake failed; answers keep coming from the previous bake or the network")
+            # Bake at most bake_duty of the time: with weights every second, rest as long
+            # as the bake took (at 0.5), leaving the machine to the mapper and the answers.
+            took = time.monotonic() - t
+            self._stop.wait(took * (1.0 / self.bake_duty - 1.0))
 
     def start(self) -> None:
         """Start the background baker (no-op when baking is off)."""
