@@ -26,6 +26,26 @@ from .stack import Stack, wait_for
 log = logging.getLogger("aisdf.demo")
 
 
+class NullRecorder:
+    """Records nothing: rerun-sdk (the ``aisdf[viewer]`` extra) is not installed."""
+
+    def keyframe(self, kf) -> None: ...
+
+    def mesh(self, m) -> None: ...
+
+    def surfels(self, s) -> None: ...
+
+    def close(self) -> None: ...
+
+
+def open_recorder(path: Path):
+    try:
+        return Recorder(path)
+    except ImportError:
+        log.warning("rerun-sdk is not installed (pip install 'aisdf[viewer]'): no recording in %s", path)
+        return NullRecorder()
+
+
 class Recorder:
     """The rerun recording: keyframes' depth and camera poses, the mesh as it grows."""
 
@@ -107,7 +127,7 @@ def run(duration: float = 180.0, out: str | Path = "runs/demo", building: str = 
     prev = signal.signal(signal.SIGINT, lambda *_: stop.set())
     rng = np.random.default_rng(seed)
     history, summary = [], {}
-    recorder = Recorder(out / "demo.rrd")
+    recorder = open_recorder(out / "demo.rrd")
     t0 = time.monotonic()
     tty = sys.stdout.isatty()
     if not quiet:
