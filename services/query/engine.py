@@ -74,7 +74,7 @@ class QueryEngine:
     def __init__(self, max_points: int = 1_000_000, chunk_points: int = 65_536, device: str = "auto",
                  fuse_radius: float = 0.5, mesh_resolution: float = 0.05, mesh_max_cells: int = 16_000_000,
                  bake: bool = True, bake_config: BakeConfig | None = None, bake_threads: int = 2,
-                 bake_duty: float = 0.5):
+                 bake_duty: float = 0.75):
         self.max_points = max_points
         self.chunk_points = chunk_points
         self.device = pick_device(device)
@@ -227,8 +227,8 @@ class QueryEngine:
             except Exception:  # noqa: BLE001 - keep answering from the last good bake / the network
                 self.bake_failures += 1
                 log.exception("bake failed; answers keep coming from the previous bake or the network")
-            # Bake at most bake_duty of the time: with weights every second, rest as long
-            # as the bake took (at 0.5), leaving the machine to the mapper and the answers.
+            # Bake at most bake_duty of the time: with weights every second, rest a third of
+            # the bake's time (at 0.75), leaving some of the machine to the mapper and the answers.
             took = time.monotonic() - t
             self._stop.wait(took * (1.0 / self.bake_duty - 1.0))
 
