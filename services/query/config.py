@@ -25,6 +25,8 @@ class QueryConfig(ServiceConfig):
     # Protocol 1.1: the baked field and load shedding.
     bake: bool = Field(True, description="bake the fused field of every new map and answer fused requests from it")
     bake_threads: int = Field(2, ge=1, le=64, description="threads evaluating the network while baking")
+    bake_nice: int = Field(10, ge=0, le=19, description="nice value of the baking threads (Linux): whatever else "
+                           "runs on the machine (a mapper, the answers) goes first")
     bake_duty: float = Field(0.75, gt=0, le=1, description="largest share of the time spent baking: after a bake "
                              "of t seconds the baker rests t * (1/bake_duty - 1) seconds")
     bake_block: float = Field(0.2, gt=0, description="baked field: block edge and coarse spacing (m)")

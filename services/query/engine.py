@@ -19,6 +19,7 @@ map of the one that crashed even though its version counter restarted lower.
 from __future__ import annotations
 
 import logging
+import os
 import threading
 import time
 from collections import deque
@@ -74,7 +75,7 @@ class QueryEngine:
     def __init__(self, max_points: int = 1_000_000, chunk_points: int = 65_536, device: str = "auto",
                  fuse_radius: float = 0.5, mesh_resolution: float = 0.05, mesh_max_cells: int = 16_000_000,
                  bake: bool = True, bake_config: BakeConfig | None = None, bake_threads: int = 2,
-                 bake_duty: float = 0.75):
+                 bake_duty: float = 0.75, bake_nice: int = 10):
         self.max_points = max_points
         self.chunk_points = chunk_points
         self.device = pick_device(device)
@@ -85,6 +86,7 @@ class QueryEngine:
         self.bake_config = bake_config or BakeConfig()
         self.bake_threads = bake_threads
         self.bake_duty = bake_duty
+        self.bake_nice = bake_nice
         self._state: MapState | None = None
         self._surfels: tuple[tuple[int, int], Surfels] | None = None
         self._baked: BakedMap | None = None
@@ -102,7 +104,7 @@ class QueryEngine:
         return cls(cfg.max_points, cfg.chunk_points, cfg.device, cfg.fuse_radius, cfg.mesh_resolution,
                    cfg.mesh_max_cells, cfg.bake,
                    BakeConfig(block=cfg.bake_block, fine=cfg.bake_fine, band=cfg.bake_band, tol=cfg.bake_tol,
-                              near_surface=cfg.bake_near_surface), cfg.bake_threads, cfg.bake_duty)
+                              near_surface=cfg.bake_near_surface), cfg.bake_threads, cfg.bake_duty, cfg.bake_nice)
 
     # ------------------------------------------------------------------ map updates
 
@@ -182,7 +184,8 @@ class QueryEngine:
             starts = range(0, len(pts), chunk)
             if self.bake_threads > 1 and self.device.type == "cpu" and len(starts) > 1:
                 # torch releases the GIL inside its ops: chunks run side by side.
-                with ThreadPoolExecutor(self.bake_threads, thread_name_prefix="bake") as ex:
+                with ThreadPoolExecutor(self.bake_threads, thread_name_prefix="bake",
+                                        initializer=self._lower_priority if self._on_baker() else None) as ex:
                     list(ex.map(one, starts))
             else:
                 for i in starts:
@@ -216,7 +219,17 @@ class QueryEngine:
                  fld.nbytes / 1e6)
         return self._baked
 
+    def _lower_priority(self) -> None:
+        """Bake with a lower CPU priority (Linux nice is per thread): a mapper or the answers
+        on the same machine go first, the bake takes what is left."""
+        if self.bake_nice and hasattr(os, "setpriority"):
+            try:
+                os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), self.bake_nice)
+            except OSError as e:  # not permitted, or not Linux: bake at normal priority
+                log.debug("could not lower the baker's priority: %s", e)
+
     def _bake_loop(self) -> None:
+        self._lower_priority()
         while not self._stop.is_set():
             if not self._bake_wanted.wait(0.5):
                 continue
@@ -242,6 +255,9 @@ class QueryEngine:
         self._stop.set()
         if self._baker is not None:
             self._baker.join(timeout=30)
+
+    def _on_baker(self) -> bool:
+        return self._baker is not None and threading.current_thread() is self._baker
 
     def lag(self) -> dict:
         """How far answers trail the newest weights, now: ``versions`` behind, and ``behind_s``:

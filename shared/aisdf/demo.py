@@ -197,11 +197,13 @@ def finish(client, seq, out: Path, recorder, rng, history, elapsed, quiet) -> di
         r = client.query(pts, source=src, exact=exact)
         errs[name] = round(100 * float(np.mean(np.abs(r.sdf - gt))), 2)
         errs[name + "_baked"] = r.baked
+        errs[name + "_version"] = r.map_version
     lags = [h["answer_lag_s"] for h in history if h.get("answer_lag_s") is not None]
     summary = {"elapsed_s": round(elapsed, 1), "frames": frames_seen, "history": history,
                "answer_lag_s": {"max": max(lags), "mean": round(float(np.mean(lags)), 3)} if lags else None,
                "sdf_error_cm": errs["fused"], "sdf_error_implicit_cm": errs["implicit"],
                "sdf_error_fused_network_cm": errs["fused_exact"], "answered_baked": errs["fused_baked"],
+               "answered_version": errs["fused_version"], "newest_version": errs["fused_exact_version"],
                "eval_points": len(pts), "planner": planner_example(client, seq)}
     try:
         m = client.mesh(0.05)
@@ -220,8 +222,9 @@ def finish(client, seq, out: Path, recorder, rng, history, elapsed, quiet) -> di
     if not quiet:
         p = summary["planner"]
         print(f"SDF error (iSDF protocol, {len(pts)} points along seen rays): {errs['fused']:.2f} cm fused "
-              f"({'baked field' if errs['fused_baked'] else 'network'}; {errs['fused_exact']:.2f} cm fused from the "
-              f"network), {errs['implicit']:.2f} cm network alone")
+              f"({'baked field' if errs['fused_baked'] else 'network'}, map v{errs['fused_version']}; "
+              f"{errs['fused_exact']:.2f} cm fused from the network of the newest map v{errs['fused_exact_version']}), "
+              f"{errs['implicit']:.2f} cm network alone")
         print(f"planner: path of {p['points']} points, collision cost {p['cost']:.2f} (truth {p['cost_truth']:.2f}), "
               f"min clearance {p['min_clearance']:.2f} m (truth {p['min_clearance_truth']:.2f} m)")
         print(f"surfels: {summary['surfels']}; mesh: {summary['mesh']}")
