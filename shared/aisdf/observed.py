@@ -50,6 +50,7 @@ class ObservedSpace:
         self.margin = float(margin)
         self.max_rays = int(max_rays)
         self.keys = np.zeros(0, np.int64)  # sorted, unique
+        self._msg: dict | None = None  # the grid message of the current keys (built once per change)
 
     def __len__(self) -> int:
         return len(self.keys)
@@ -82,6 +83,8 @@ class ObservedSpace:
         new = np.unique(pack_keys(np.floor(pts / self.voxel).astype(np.int64)))
         before = len(self.keys)
         self.keys = np.union1d(self.keys, new)
+        if len(self.keys) != before:
+            self._msg = None
         return len(self.keys) - before
 
     def contains(self, points: np.ndarray) -> np.ndarray:
@@ -102,12 +105,20 @@ class ObservedSpace:
         occ[tuple((ijk - lo).T)] = True
         return ObservedGrid(lo * self.voxel, self.voxel, occ)
 
+    def message(self) -> dict | None:
+        """The :class:`ObservedGrid` message of what is observed (None before anything is):
+        built when the observed space changed, reused for every snapshot in between."""
+        if self._msg is None and len(self.keys):
+            self._msg = self.grid().to_msg()
+        return self._msg
+
     def state_dict(self) -> dict:
         return {"voxel": self.voxel, "margin": self.margin, "keys": self.keys.copy()}
 
     def load_state_dict(self, d: dict) -> None:
         self.voxel, self.margin = float(d["voxel"]), float(d["margin"])
         self.keys = np.asarray(d["keys"], np.int64)
+        self._msg = None
 
 
 class ObservedGrid:

@@ -135,9 +135,8 @@ class MappingPipeline:
         model = dict(self.trainer.model_spec())
         if self._bounds is not None:
             model["bounds"] = self._bounds.tolist()
-        grid = self.observed.grid()
         return protocol.WeightSnapshot(version, self.steps, time.time(), model, self.trainer.state_numpy(),
-                                       observed=None if grid is None else grid.to_msg())
+                                       observed=self.observed.message())
 
     def surfels(self) -> Surfels | None:
         return None if self.structure is None else self.structure.global_surfels()
