@@ -68,7 +68,6 @@ class MapState:
 class BakedMap:
     state: MapState  # the map it was baked from (its network answers points outside the bake)
     field: BakedField
-    ready: float  # time.monotonic() when it was swapped in
 
 
 class QueryEngine:
@@ -210,7 +209,7 @@ class QueryEngine:
         with self._lock:
             cur = self._baked
             if cur is None or cur.state.order <= st.order:
-                self._baked = BakedMap(st, fld, time.monotonic())
+                self._baked = BakedMap(st, fld)
         self.bakes += 1
         self.last_bake = {**fld.stats, "wall_s": round(time.perf_counter() - t, 3), "version": st.version,
                           "epoch": st.epoch}

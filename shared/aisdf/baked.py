@@ -45,6 +45,7 @@ another way (the query service: the network).
 
 from __future__ import annotations
 
+import itertools
 import math
 import time
 from dataclasses import dataclass
@@ -231,6 +232,9 @@ class BakedField:
         return f, (g if gradient else None), covered
 
 
+_CORNERS = list(itertools.product((0, 1), repeat=3))  # a cell's 8 corners as index offsets
+
+
 def _dilate26(mask: np.ndarray) -> np.ndarray:
     from scipy.ndimage import binary_dilation
 
@@ -248,9 +252,8 @@ def bake(fn, observed, cfg: BakeConfig | None = None) -> BakedField:
     extent = observed.voxel * np.array(observed.occ.shape)
     nb = np.maximum(np.ceil(extent / B - 1e-9).astype(np.int64), 1)
     # Blocks holding an observed voxel (voxel centres, so a voxel belongs to one block).
-    vox = np.argwhere(observed.occ)
-    centres = (vox + 0.5) * observed.voxel
-    bidx = np.minimum(np.floor(centres / B).astype(np.int64), nb - 1)
+    vox_centres = (np.argwhere(observed.occ) + 0.5) * observed.voxel
+    bidx = np.minimum(np.floor(vox_centres / B).astype(np.int64), nb - 1)
     state = np.zeros(tuple(nb), np.int8)
     state[bidx[:, 0], bidx[:, 1], bidx[:, 2]] = 1
     blocks = np.argwhere(state > 0)
@@ -268,10 +271,8 @@ def bake(fn, observed, cfg: BakeConfig | None = None) -> BakedField:
 
     # Coarse level: the corners of every baked block.
     corner_mask = np.zeros(tuple(nb + 1), bool)
-    for a in (0, 1):
-        for b in (0, 1):
-            for c in (0, 1):
-                corner_mask[blocks[:, 0] + a, blocks[:, 1] + b, blocks[:, 2] + c] = True
+    for a, b, c in _CORNERS:
+        corner_mask[blocks[:, 0] + a, blocks[:, 1] + b, blocks[:, 2] + c] = True
     corners = np.argwhere(corner_mask)
     C = np.full(tuple(nb + 1) + (4,), np.nan, np.float32)
     C[corners[:, 0], corners[:, 1], corners[:, 2]] = evaluate(origin + corners * B)
@@ -279,16 +280,14 @@ def bake(fn, observed, cfg: BakeConfig | None = None) -> BakedField:
     # Core blocks: a surface may pass within band of them.
     absf = np.abs(C[..., 0])
     minc = np.full(tuple(nb), np.inf, np.float32)
-    for a in (0, 1):
-        for b in (0, 1):
-            for c in (0, 1):
-                minc = np.fmin(minc, absf[a:a + nb[0], b:b + nb[1], c:c + nb[2]])
+    for a, b, c in _CORNERS:
+        minc = np.fmin(minc, absf[a:a + nb[0], b:b + nb[1], c:c + nb[2]])
     near = minc < B * math.sqrt(3) / 2 + cfg.band
     # Coarse to fine: check the coarse interpolant at the centre of every baked block
     # against the field itself; where it is off by more than ``tol`` (object edges, the
     # distance field's ridges, curved surfaces) the block gets the fine level.
-    ones = np.full(tuple(nb), -1, np.int32)
-    coarse_only = BakedField(origin, B, (state > 0).astype(np.int8), C, ones, np.zeros(tuple(nb + 1), np.float32),
+    no_fine = np.full(tuple(nb), -1, np.int32)
+    coarse_only = BakedField(origin, B, (state > 0).astype(np.int8), C, no_fine, np.zeros(tuple(nb + 1), np.float32),
                              np.zeros((0, nf + 1, nf + 1, nf + 1, 4), np.float32), nf)
     centres = origin + (blocks + 0.5) * B
     centre_vals = evaluate(centres)
@@ -306,10 +305,8 @@ def bake(fn, observed, cfg: BakeConfig | None = None) -> BakedField:
     padded = np.ones(tuple(nb + 2), bool)
     padded[1:-1, 1:-1, 1:-1] = fine | (state == 0)
     A = np.ones(tuple(nb + 1), bool)
-    for a in (0, 1):
-        for b in (0, 1):
-            for c in (0, 1):
-                A &= padded[a:a + nb[0] + 1, b:b + nb[1] + 1, c:c + nb[2] + 1]
+    for a, b, c in _CORNERS:
+        A &= padded[a:a + nb[0] + 1, b:b + nb[1] + 1, c:c + nb[2] + 1]
     A = A.astype(np.float32)
     # Fine level: unique lattice points (spacing B/nf) of the fine blocks, evaluated once.
     F = np.zeros((len(fblocks), nf + 1, nf + 1, nf + 1, 4), np.float32)
