@@ -12,6 +12,7 @@ from aisdf.baked import BakeConfig, bake
 from aisdf.geometry import backproject, invert, transform
 from aisdf.observed import ObservedGrid, ObservedSpace
 from aisdf.synthetic import SyntheticSequence
+from small_map import train_small_map
 
 torch.set_num_threads(1)
 
@@ -225,19 +226,8 @@ def test_observed_space_rejects_malformed_grids():
 
 @pytest.fixture(scope="module")
 def trained():
-    """A small map of the synthetic Atlanta building: the pipeline, its messages, and the frames."""
-    from aisdf.mapping.frames import Frame
-    from aisdf.pipeline import MappingPipeline
-
-    s = SyntheticSequence(building="atlanta", n_frames=120, H=60, W=80, seed=1)
-    p = MappingPipeline.from_settings("cpu", {"network": {"width": 32}, "n_rays": 20})
-    frames = []
-    for i in range(0, 120, 20):
-        f = s.frame(i)
-        frames.append(f)
-        p.add_keyframe(Frame(f["frame_id"], f["stamp"], f["depth"], f["K"], f["T_WC"]))
-        for _ in range(5):
-            p.step()
+    """A small map of the synthetic Atlanta building: the frames and its messages (as received)."""
+    s, frames, p = train_small_map()
     snap = protocol.WeightSnapshot.from_msg(protocol.unpack(protocol.pack(p.weight_snapshot(3).to_msg())))
     smap = p.surfel_map(3)
     smap = None if smap is None else protocol.SurfelMap.from_msg(protocol.unpack(protocol.pack(smap.to_msg())))

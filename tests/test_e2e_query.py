@@ -12,13 +12,11 @@ import torch
 
 import stranger_client as sc
 from aisdf import protocol
-from aisdf.mapping.frames import Frame
 from aisdf.metrics import eval_points
 from aisdf.network import NetworkConfig, SDFNetwork, model_spec, state_to_numpy
-from aisdf.pipeline import MappingPipeline
 from aisdf.stack import Stack, wait_for
-from aisdf.synthetic import SyntheticSequence
 from aisdf_query.engine import QueryEngine
+from small_map import train_small_map
 
 pytestmark = pytest.mark.e2e
 NS = "aisdf/e2eq"
@@ -32,15 +30,7 @@ def info(s):
 
 @pytest.fixture(scope="module")
 def small_map():
-    seq = SyntheticSequence(building="atlanta", n_frames=120, H=60, W=80, seed=1)
-    p = MappingPipeline.from_settings("cpu", {"network": {"width": 32}, "n_rays": 20})
-    frames = []
-    for i in range(0, 120, 20):
-        f = seq.frame(i)
-        frames.append(f)
-        p.add_keyframe(Frame(f["frame_id"], f["stamp"], f["depth"], f["K"], f["T_WC"]))
-        for _ in range(5):
-            p.step()
+    seq, frames, p = train_small_map()
     return seq, frames, p.weight_snapshot(1), p.surfel_map(1)
 
 
