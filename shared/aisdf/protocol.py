@@ -115,6 +115,7 @@ class WeightSnapshot:
     state: dict[str, np.ndarray]
     epoch: int = 0  # protocol 1.2: the mapper incarnation; maps order by (epoch, version)
     observed: dict | None = None  # protocol 1.1: the observed-space grid (aisdf.observed)
+    submap: dict | None = None  # protocol 1.3: {"id": "i_j_k", "grid": SubmapGrid message} (map/submaps/<id>)
 
     def to_msg(self) -> dict:
         msg = {
@@ -129,6 +130,8 @@ class WeightSnapshot:
             msg["epoch"] = int(self.epoch)
         if self.observed is not None:
             msg["observed"] = self.observed
+        if self.submap is not None:
+            msg["submap"] = self.submap
         return msg
 
     @classmethod
@@ -145,7 +148,67 @@ class WeightSnapshot:
             state[k] = decode_array(v, f"state.{k}", ("<f4", "<f8"))
         epoch = _get(msg, "epoch", int, 0, "an integer")
         observed = _get(msg, "observed", dict, None, "a map")
-        return cls(version, step, stamp, model, state, epoch, observed)
+        submap = _get(msg, "submap", dict, None, "a map")
+        if submap is not None:
+            _submap_header(submap)
+        return cls(version, step, stamp, model, state, epoch, observed, submap)
+
+
+def _submap_header(m: Mapping) -> tuple[str, "object"]:
+    """Validate a snapshot's ``submap`` map: (id, SubmapGrid)."""
+    from .submaps.grid import SubmapGrid, parse_cell_id
+
+    sid = _get(m, "id", str, what="a string")
+    try:
+        parse_cell_id(sid)
+        grid = SubmapGrid.from_msg(_get(m, "grid", dict, what="a map"))
+    except ValueError as e:
+        raise _bad(str(e)) from None
+    return sid, grid
+
+
+@dataclass
+class SubmapIndex:
+    """Protocol 1.3 (``map/index``): the submap grid and, per submap id, the map version of
+    its newest snapshot on ``map/submaps/<id>`` and its training steps."""
+
+    version: int
+    stamp: float
+    grid: dict
+    submaps: dict[str, dict]
+    epoch: int = 0
+
+    def to_msg(self) -> dict:
+        msg = {"v": VERSION, "version": int(self.version), "stamp": float(self.stamp), "grid": self.grid,
+               "submaps": {k: {"version": int(v["version"]), "step": int(v.get("step", 0))}
+                           for k, v in self.submaps.items()}}
+        if self.epoch:
+            msg["epoch"] = int(self.epoch)
+        return msg
+
+    @classmethod
+    def from_msg(cls, msg: Mapping) -> "SubmapIndex":
+        from .submaps.grid import SubmapGrid, parse_cell_id
+
+        version = _get(msg, "version", int, what="an integer")
+        stamp = _number(msg, "stamp")
+        grid = _get(msg, "grid", dict, what="a map")
+        try:
+            SubmapGrid.from_msg(grid)
+        except ValueError as e:
+            raise _bad(str(e)) from None
+        raw = _get(msg, "submaps", dict, what="a map")
+        submaps = {}
+        for k, v in raw.items():
+            if not isinstance(k, str) or not isinstance(v, dict):
+                raise _bad("submaps must map 'i_j_k' ids to maps")
+            try:
+                parse_cell_id(k)
+            except ValueError as e:
+                raise _bad(str(e)) from None
+            submaps[k] = {"version": _get(v, "version", int, what="an integer"), "step": _get(v, "step", int, 0, "an integer")}
+        epoch = _get(msg, "epoch", int, 0, "an integer")
+        return cls(version, stamp, grid, submaps, epoch)
 
 
 SURFEL_FIELDS = {

@@ -1,0 +1,114 @@
+"""One field from many submaps: each point answered by the submaps whose extended boxes
+hold it, blended with the grid's C¹ weights (see ``grid.py``):
+
+    f = sum_i w_i f_i / W,   grad f = (sum_i (w_i grad f_i + f_i grad w_i) − f grad W) / W,   W = sum_i w_i.
+
+A point no submap covers is answered by the submap whose core is nearest (unblended,
+``covered`` False), so every point gets a value. No torch here: a submap is a callable
+``fn(points (M, 3) float32, grad: bool) -> (f (M,), g (M, 3) or None)``, so the mapper
+(its trainers) and the query service (its rebuilt networks, or baked fields) share it.
+"""
+
+from __future__ import annotations
+
+from typing import Callable
+
+import numpy as np
+
+from .grid import _OFFSETS, SubmapGrid
+
+Evaluator = Callable[[np.ndarray, bool], tuple[np.ndarray, np.ndarray | None]]
+
+
+def assign(grid: SubmapGrid, cells, points_W: np.ndarray) -> dict[tuple[int, int, int], np.ndarray]:
+    """{cell: indices of the points whose blend weight in that cell is > 0}, over ``cells``."""
+    cells = set(cells)
+    p = np.asarray(points_W, np.float64).reshape(-1, 3)
+    if not cells or not len(p):
+        return {}
+    g = grid.to_grid(p)
+    base = np.floor(g / grid.size).astype(np.int64)
+    out: dict[tuple[int, int, int], list[np.ndarray]] = {}
+    size, o = grid.size, grid.overlap_m
+    for off in _OFFSETS:
+        ijk = base + off
+        lo = ijk * size - o
+        hi = (ijk + 1) * size + o
+        inside = np.all((g > lo) & (g < hi), axis=1)
+        if not inside.any():
+            continue
+        idx = np.flatnonzero(inside)
+        uniq, inv = np.unique(ijk[idx], axis=0, return_inverse=True)
+        inv = inv.reshape(-1)
+        for u, cell in enumerate(uniq):
+            t = (int(cell[0]), int(cell[1]), int(cell[2]))
+            if t in cells:
+                out.setdefault(t, []).append(idx[inv == u])
+    return {k: np.sort(np.concatenate(v)) for k, v in out.items()}
+
+
+def nearest_cell(grid: SubmapGrid, cells, points_W: np.ndarray) -> list[tuple[int, int, int]]:
+    """For each point, the cell among ``cells`` whose core box is nearest (grid metric)."""
+    cells = list(cells)
+    g = grid.to_grid(points_W)
+    best = np.full(len(g), np.inf)
+    arg = np.zeros(len(g), np.int64)
+    for n, c in enumerate(cells):
+        lo, hi = grid.core_box(c)
+        d = np.linalg.norm(np.maximum(np.maximum(lo - g, g - hi), 0.0), axis=1)
+        better = d < best
+        best[better], arg[better] = d[better], n
+    return [cells[i] for i in arg]
+
+
+def blend(grid: SubmapGrid, evaluators: dict[tuple[int, int, int], Evaluator], points_W: np.ndarray,
+          grad: bool = True) -> tuple[np.ndarray, np.ndarray | None, np.ndarray]:
+    """(f (N,) float32, grad (N, 3) float32 or None, covered (N,) bool)."""
+    p = np.asarray(points_W, np.float64).reshape(-1, 3)
+    n = len(p)
+    f_acc = np.zeros(n)
+    w_acc = np.zeros(n)
+    g_acc = np.zeros((n, 3)) if grad else None
+    gw_acc = np.zeros((n, 3)) if grad else None
+    if not evaluators or not n:
+        nan = np.full(n, np.nan, np.float32)
+        return nan, (np.full((n, 3), np.nan, np.float32) if grad else None), np.zeros(n, bool)
+    for cell, idx in assign(grid, evaluators, p).items():
+        q = p[idx]
+        if grad:
+            w, dw = grid.weight(cell, q, grad=True)
+        else:
+            w = grid.weight(cell, q)
+        keep = w > 0
+        if not keep.any():
+            continue
+        idx, q, w = idx[keep], q[keep], w[keep]
+        f, g = evaluators[cell](q.astype(np.float32), grad)
+        f = np.asarray(f, np.float64)
+        f_acc[idx] += w * f
+        w_acc[idx] += w
+        if grad:
+            dw = dw[keep]
+            g_acc[idx] += w[:, None] * np.asarray(g, np.float64) + f[:, None] * dw
+            gw_acc[idx] += dw
+    covered = w_acc > 0
+    out_f = np.zeros(n)
+    out_f[covered] = f_acc[covered] / w_acc[covered]
+    out_g = None
+    if grad:
+        out_g = np.zeros((n, 3))
+        W = w_acc[covered, None]
+        out_g[covered] = (g_acc[covered] - out_f[covered, None] * gw_acc[covered]) / W
+    rest = np.flatnonzero(~covered)
+    if len(rest):
+        near = nearest_cell(grid, evaluators, p[rest])
+        by: dict = {}
+        for i, c in zip(rest, near):
+            by.setdefault(c, []).append(i)
+        for c, ii in by.items():
+            ii = np.asarray(ii)
+            f, g = evaluators[c](p[ii].astype(np.float32), grad)
+            out_f[ii] = f
+            if grad:
+                out_g[ii] = g
+    return out_f.astype(np.float32), (None if out_g is None else out_g.astype(np.float32)), covered
