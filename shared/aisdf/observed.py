@@ -95,10 +95,18 @@ class ObservedSpace:
         i = np.clip(np.searchsorted(self.keys, k), 0, len(self.keys) - 1)
         return self.keys[i] == k
 
-    def grid(self) -> "ObservedGrid | None":
-        if not len(self.keys):
+    def nbytes(self) -> int:
+        return int(self.keys.nbytes)
+
+    def grid(self, keep=None) -> "ObservedGrid | None":
+        """The occupancy grid of the observed voxels; ``keep(centres (N, 3)) -> (N,) bool``
+        limits it to some of them (a submap's box)."""
+        keys = self.keys
+        if keep is not None and len(keys):
+            keys = keys[keep((unpack_keys(keys) + 0.5) * self.voxel)]
+        if not len(keys):
             return None
-        ijk = unpack_keys(self.keys)
+        ijk = unpack_keys(keys)
         lo = ijk.min(0)
         shape = tuple(int(x) for x in ijk.max(0) - lo + 1)
         occ = np.zeros(shape, bool)

@@ -16,7 +16,7 @@ from typing import Any
 
 import numpy as np
 
-from . import protocol
+from . import keys, protocol
 from .mapping.frames import Frame
 from .mapping.presets import training_config
 from .mapping.trainer import Trainer
@@ -27,7 +27,7 @@ MIN_VALID_PIXELS = 64
 
 
 def frame_from_keyframe(kf: protocol.Keyframe) -> Frame:
-    return Frame(kf.frame_id, kf.stamp, kf.depth_m(), kf.K, kf.T_WC)
+    return Frame(kf.frame_id, kf.stamp, kf.depth_m(), kf.K, kf.T_WC, sensor=kf.sensor)
 
 
 class MappingPipeline:
@@ -73,14 +73,14 @@ class MappingPipeline:
 
     def add_keyframe(self, kf: protocol.Keyframe | Frame) -> None:
         """Add a keyframe. Raises ValueError (and changes nothing) for one that cannot be
-        used: a duplicate frame_id, too few valid depth pixels."""
+        used: a duplicate (sensor, frame_id), too few valid depth pixels."""
         frame = frame_from_keyframe(kf) if isinstance(kf, protocol.Keyframe) else kf
         depth = frame.depth
         valid = np.isfinite(depth) & (depth > 0) & (depth <= self.trainer.cfg.max_depth)
         if int(valid.sum()) < MIN_VALID_PIXELS:
             raise ValueError(f"only {int(valid.sum())} valid depth pixels (need {MIN_VALID_PIXELS})")
-        if frame.frame_id in {f.frame_id for f in self.trainer.keyframes}:
-            raise ValueError(f"frame_id {frame.frame_id} is already in the map")
+        if frame.key in {f.key for f in self.trainer.keyframes}:
+            raise ValueError(f"keyframe {frame.sensor}/{frame.frame_id} is already in the map")
         if self.structure is not None:
             t = self.structure.process(frame)
             for k, v in t.items():
@@ -152,6 +152,25 @@ class MappingPipeline:
 
     def sdf(self, points: np.ndarray) -> np.ndarray:
         return self.trainer.sdf(points)
+
+    def map_messages(self, version: int, changed_only: bool = True, epoch: int = 0) -> list[tuple[str, bytes]]:
+        """What the mapper publishes for map ``version``: (key under the namespace, payload).
+        One network is one message: it is all sent every time, changed or not."""
+        snap = self.weight_snapshot(version)
+        snap.epoch = epoch
+        out = [(keys.MAP_WEIGHTS, protocol.pack(snap.to_msg()))]
+        smap = self.surfel_map(version)
+        if smap is not None:
+            smap.epoch = epoch
+            out.append((keys.MAP_SURFELS, protocol.pack(smap.to_msg())))
+        return out
+
+    def memory(self) -> dict[str, int]:
+        """Bytes held, by part: keyframes (depth, normals, masks, surfels), model (weights and
+        AdamW moments), observed space."""
+        kf = sum(k.frame.nbytes() + k.depth.nbytes + k.normals_W.nbytes for k in self.trainer.store.keyframes)
+        n_par = sum(p.numel() for p in self.trainer.net.parameters())
+        return {"keyframes": int(kf), "model": int(3 * 4 * n_par), "observed": int(self.observed.nbytes())}
 
     # ------------------------------------------------------------------ checkpoints
 

@@ -31,6 +31,18 @@ class Frame:
     T_WC: np.ndarray
     surfels: Surfels | None = None
     surfel_mask: np.ndarray | None = None
+    sensor: str = "depth"  # with frame_id, the keyframe's identity in a map several robots build
+
+    @property
+    def key(self) -> tuple[str, int]:
+        return (self.sensor, int(self.frame_id))
+
+    def nbytes(self) -> int:
+        """Bytes held by the frame's arrays (depth, mask, surfels)."""
+        n = self.depth.nbytes + (0 if self.surfel_mask is None else self.surfel_mask.nbytes)
+        if self.surfels is not None:
+            n += sum(np.asarray(getattr(self.surfels, f)).nbytes for f in SURFEL_FIELDS)
+        return int(n)
 
     def to_dict(self) -> dict:
         """Plain types and arrays (for checkpoints)."""
@@ -40,6 +52,7 @@ class Frame:
             "T_WC": np.asarray(self.T_WC, np.float64),
             "surfels": None if self.surfels is None else {f: getattr(self.surfels, f) for f in SURFEL_FIELDS},
             "surfel_mask": None if self.surfel_mask is None else np.asarray(self.surfel_mask, bool),
+            "sensor": str(self.sensor),
         }
 
     @classmethod
@@ -49,7 +62,7 @@ class Frame:
         return cls(
             int(d["frame_id"]), float(d["stamp"]), np.asarray(d["depth"], np.float32), np.asarray(d["K"], np.float64),
             np.asarray(d["T_WC"], np.float64), None if s is None else Surfels(**s),
-            None if m is None else np.asarray(m, bool),
+            None if m is None else np.asarray(m, bool), str(d.get("sensor", "depth")),
         )
 
 
