@@ -1,4 +1,4 @@
-"""``aisdf``: the umbrella command (``demo``, ``bench``)."""
+"""``aisdf``: the umbrella command (``demo``, ``view``, ``bench``)."""
 
 from __future__ import annotations
 
@@ -14,6 +14,12 @@ def _demo(args) -> None:
     s = run(duration=args.duration, out=args.out, building=args.building, seed=args.seed, preset=args.preset)
     if args.max_error_cm is not None and s.get("sdf_error_cm", 1e9) > args.max_error_cm:
         raise SystemExit(f"SDF error {s.get('sdf_error_cm')} cm is above --max-error-cm {args.max_error_cm}")
+
+
+def _view(args) -> None:
+    from .viewer import main as view_main
+
+    view_main(args)
 
 
 def _bench_query(args) -> None:
@@ -48,6 +54,16 @@ def main(argv: list[str] | None = None) -> None:
     d.add_argument("--preset", default="auto", choices=["auto", "paper", "cpu"])
     d.add_argument("--max-error-cm", type=float, help="exit non-zero if the final SDF error is above this")
     d.set_defaults(fn=_demo)
+
+    v = sub.add_parser("view", help="live rerun view of a running stack (keyframes, surfels, Atlanta frame, mesh)",
+                       description="Connects to a running stack (the services' Zenoh flags and namespace) and shows "
+                       "in rerun, live: keyframes (depth, camera frustum, path), the surfel map coloured by Atlanta "
+                       "direction, the Atlanta frame and the mesh refreshed every --mesh-period seconds. Spawns the "
+                       "rerun viewer; --save FILE.rrd records to a file instead. Needs the extra aisdf[viewer].")
+    from .viewer import add_arguments as _view_arguments
+
+    _view_arguments(v)
+    v.set_defaults(fn=_view)
 
     b = sub.add_parser("bench", help="benchmarks: `aisdf bench` = the paper's tables; `aisdf bench query`",
                        description="Without a subcommand: the paper's Tables I-III side by side on the same frames "
