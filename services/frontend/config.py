@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 from typing import Literal
 
@@ -19,6 +20,36 @@ class KeyframeConfig(Model):
     max_interval_s: float = Field(5.0, gt=0, description="a keyframe at least this often (iSDF forces one every 5 s)")
     overlap_stride: int = Field(4, ge=1, description="pixel stride of the overlap test")
     all_frames: bool = Field(False, description="send every frame as a keyframe")
+
+
+def _ros_domain_id() -> int:
+    raw = os.environ.get("ROS_DOMAIN_ID", "").strip()
+    return int(raw) if raw.isdigit() else 0
+
+
+class Ros2SourceConfig(Model):
+    """``--source ros2``: a live ROS 2 robot over rmw_zenoh (aisdf.ros.live)."""
+
+    connect: list[str] = Field(default_factory=lambda: ["tcp/localhost:7447"],
+                               description="Zenoh router(s) of the robot's ROS 2 network (rmw_zenoh's default)")
+    zenoh_config: Path | None = Field(default_factory=lambda: os.environ.get("ZENOH_SESSION_CONFIG_URI") or None,
+                                      description="Zenoh session file for the ROS side (default "
+                                      "$ZENOH_SESSION_CONFIG_URI, as rmw_zenoh)")
+    domain_id: int = Field(default_factory=_ros_domain_id, ge=0, le=232, description="ROS_DOMAIN_ID (default "
+                           "$ROS_DOMAIN_ID or 0)")
+    distro: Literal["humble", "iron", "jazzy", "kilted", "lyrical", "rolling"] = Field(
+        "jazzy", description="message definitions, and the type hash in this node's own liveliness tokens")
+    depth_topic: str = Field("/camera/depth/image_rect_raw", description="depth image topic")
+    depth_type: Literal["image", "compressed"] = Field("image", description="sensor_msgs/Image or CompressedImage")
+    info_topic: str = Field("/camera/depth/camera_info", description="sensor_msgs/CameraInfo topic")
+    tf_topic: str = "/tf"
+    tf_static_topic: str = "/tf_static"
+    fixed_frame: str = Field("map", description="world frame of the poses (TF chain to the image's frame)")
+    camera_frame: str | None = Field(None, description="camera frame instead of the images' header.frame_id")
+    node_name: str = Field("aisdf_frontend", description="this ROS 2 node's name")
+    idle_timeout_s: float | None = Field(None, gt=0, description="end after this long without a depth image "
+                                         "(once one came); None: run until stopped")
+    max_wait_s: float = Field(1.0, gt=0, description="an image waits this long at most for the TF to place it")
 
 
 class FrontendConfig(ServiceConfig):
@@ -42,6 +73,7 @@ class FrontendConfig(ServiceConfig):
     depth_encoding: Literal["f4", "u2"] = Field("f4", description="wire depth: f4 metres or u2 millimetres")
     sensor: str = Field("depth", description="sensor name put in every keyframe")
     keyframes: KeyframeConfig = Field(default_factory=KeyframeConfig)
+    ros2: Ros2SourceConfig = Field(default_factory=Ros2SourceConfig)
     reliable: bool = Field(True, description="wait for a mapper, resend until acknowledged (protocol 1.2); false: "
                            "publish each keyframe once (mappers before 1.2 send no acknowledgements)")
     hold_max: int = Field(128, ge=1, description="keyframes held unacknowledged (no mapper, or in flight); the "

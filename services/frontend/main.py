@@ -46,6 +46,8 @@ def stream(cfg: FrontendConfig, publish, stop: threading.Event, counts: dict | N
     src = open_source(cfg)
     selector = KeyframeSelector(cfg.keyframes)
     counts = counts if counts is not None else {}
+    if getattr(src, "live", False):
+        return stream_live(cfg, src, selector, publish, stop, counts)
     counts.update(frames=0, keyframes=0, total=len(src))
     n = len(src)
     indices = range(cfg.start, n, cfg.stride)
@@ -69,6 +71,35 @@ def stream(cfg: FrontendConfig, publish, stop: threading.Event, counts: dict | N
                 log.debug("keyframe %d (%s)", frame["frame_id"], selector.last_reason)
         if not cfg.loop:
             break
+    return counts
+
+
+def stream_live(cfg: FrontendConfig, src, selector: KeyframeSelector, publish, stop: threading.Event,
+                counts: dict) -> dict:
+    """A live source (``src.live``, e.g. ``ros2``): frames are pushed as the source assembles
+    them, keyframes selected as for any source; it ends on ``stop`` (SIGINT/SIGTERM), when the
+    source ends (its idle timeout) or after ``max_frames``. ``counts["source"]`` mirrors the
+    source's own counters (images, skipped frames by reason, malformed messages)."""
+    counts.update(frames=0, keyframes=0, total=None, source=src.counts)
+    frames = src.frames(stop)
+    try:
+        for frame in frames:
+            counts["frames"] += 1
+            if selector.is_keyframe(float(frame["stamp"]), frame["depth"], frame["K"], frame["T_WC"]):
+                publish(to_keyframe(frame, cfg).to_msg())
+                counts["keyframes"] += 1
+                log.debug("keyframe %d (%s)", frame["frame_id"], selector.last_reason)
+            counts["source"] = src.counts
+            if cfg.max_frames and counts["frames"] >= cfg.max_frames:
+                break
+    finally:
+        frames.close()
+        counts["source"] = src.counts
+        src.close()
+    c = counts["source"]
+    log.info("live source ended: %d images, %d frames placed, %d skipped (%s), %d malformed messages",
+             c["images"], c["frames"], c["skipped"], c["skipped_reasons"] or "none",
+             sum(t["malformed"] for t in c["topics"].values()))
     return counts
 
 
@@ -197,15 +228,36 @@ def cli(argv: list[str] | None = None) -> None:
         "dataset folder), selects keyframes by motion and overlap, publishes them on <namespace>/keyframes.",
     )
     add_common_args(p)
-    p.add_argument("--source", help="synthetic (default) or a dataset kind: generic, 7scenes, tum, icl, ...")
+    p.add_argument("--source", help="synthetic (default), ros2 (a live robot over rmw_zenoh) or a dataset kind: "
+                   "generic, 7scenes, tum, icl, ...")
     p.add_argument("--path", help="dataset folder")
     p.add_argument("--building", help="synthetic building (office, manhattan, atlanta, stairs)")
     p.add_argument("--fast", action="store_true", help="as fast as possible instead of the sensor's rate")
     p.add_argument("--max-frames", type=int, help="stop after this many frames")
+    r = p.add_argument_group("live ROS 2 robot (--source ros2, over rmw_zenoh; any ros2.* field with --set)")
+    r.add_argument("--ros-connect", action="append", metavar="ENDPOINT",
+                   help="the robot's Zenoh router (repeatable; default tcp/localhost:7447)")
+    r.add_argument("--ros-zenoh-config", metavar="FILE", help="Zenoh session file for the ROS side "
+                   "(default $ZENOH_SESSION_CONFIG_URI)")
+    r.add_argument("--ros-domain-id", type=int, help="ROS_DOMAIN_ID (default $ROS_DOMAIN_ID or 0)")
+    r.add_argument("--ros-distro", help="humble, jazzy (default), ...: message definitions and type hashes")
+    r.add_argument("--ros-depth-topic", help="depth image topic (default /camera/depth/image_rect_raw)")
+    r.add_argument("--ros-info-topic", help="camera info topic (default /camera/depth/camera_info)")
+    r.add_argument("--ros-fixed-frame", help="world frame of the poses (default map)")
+    r.add_argument("--ros-idle-timeout", type=float, metavar="S",
+                   help="end after S seconds without a depth image (default: run until stopped)")
     args = p.parse_args(argv)
     cfg = config_from_args(FrontendConfig, args, {"source": args.source, "path": args.path,
                                                   "building": args.building, "max_frames": args.max_frames,
-                                                  "realtime": False if args.fast else None})
+                                                  "realtime": False if args.fast else None,
+                                                  "ros2.connect": args.ros_connect,
+                                                  "ros2.zenoh_config": args.ros_zenoh_config,
+                                                  "ros2.domain_id": args.ros_domain_id,
+                                                  "ros2.distro": args.ros_distro,
+                                                  "ros2.depth_topic": args.ros_depth_topic,
+                                                  "ros2.info_topic": args.ros_info_topic,
+                                                  "ros2.fixed_frame": args.ros_fixed_frame,
+                                                  "ros2.idle_timeout_s": args.ros_idle_timeout})
     stop = service_setup(cfg, "frontend")
     try:
         main(cfg, stop)

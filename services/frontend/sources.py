@@ -1,6 +1,8 @@
 """Frame sources the frontend streams: the built-in synthetic buildings and every dataset
-reader of ``aisdf.datasets``. A source has ``len()``, ``frame(i) -> dict(frame_id, stamp,
-depth (H,W) float32 metres, K, T_WC)``."""
+reader of ``aisdf.datasets``, and a live ROS 2 robot (``ros2``). A source has ``len()``,
+``frame(i) -> dict(frame_id, stamp, depth (H,W) float32 metres, K, T_WC)``; a live source
+instead has ``live = True``, ``frames(stop)`` yielding such dicts as they come, ``counts``
+and ``close()``."""
 
 from __future__ import annotations
 
@@ -24,7 +26,19 @@ def _dataset(cfg: FrontendConfig):
     return open_dataset(cfg.source, cfg.path)
 
 
-SOURCES: dict[str, Callable[[FrontendConfig], object]] = {"synthetic": _synthetic}
+def _ros2(cfg: FrontendConfig):
+    """A live ROS 2 robot over rmw_zenoh: ``live = True``, ``frames(stop)`` (no ``len()``)."""
+    from aisdf.ros.live import Ros2Source
+
+    r = cfg.ros2
+    return Ros2Source(depth_topic=r.depth_topic, info_topic=r.info_topic, fixed_frame=r.fixed_frame,
+                      camera_frame=r.camera_frame, tf_topic=r.tf_topic, tf_static_topic=r.tf_static_topic,
+                      depth_type=r.depth_type, domain_id=r.domain_id, distro=r.distro, connect=r.connect,
+                      zenoh_config=str(r.zenoh_config) if r.zenoh_config else None, node_name=r.node_name,
+                      idle_timeout_s=r.idle_timeout_s, max_wait_s=r.max_wait_s)
+
+
+SOURCES: dict[str, Callable[[FrontendConfig], object]] = {"synthetic": _synthetic, "ros2": _ros2}
 
 
 def open_source(cfg: FrontendConfig):
