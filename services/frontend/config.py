@@ -52,11 +52,28 @@ class Ros2SourceConfig(Model):
     max_wait_s: float = Field(1.0, gt=0, description="an image waits this long at most for the TF to place it")
 
 
+class RosbagSourceConfig(Model):
+    """``--source rosbag --path BAG``: a ROS 1 bag or rosbag2 recording (aisdf.ros.bag). Unset
+    topics and frames are found in the recording when there is one obvious choice."""
+
+    depth_topic: str | None = Field(None, description="depth image topic (sensor_msgs/Image or CompressedImage)")
+    info_topic: str | None = Field(None, description="sensor_msgs/CameraInfo topic")
+    fixed_frame: str | None = Field(None, description="world frame of the poses (default: the root of the TF tree "
+                                    "holding the image's frame; with a pose topic, its header frame)")
+    pose_topic: str | None = Field(None, description="PoseStamped/Odometry topic instead of /tf")
+    camera_extrinsic: str | None = Field(None, description="with a pose topic: the camera's (optical frame's) pose "
+                                         "in the pose's body frame: 'x y z qx qy qz qw', 'x y z yaw pitch roll', "
+                                         "16 numbers, or 'optical [x y z]'; default identity")
+    camera_frame: str | None = Field(None, description="camera frame instead of the images' header.frame_id")
+    tf_check: bool = Field(True, description="check the TF chain on the first frames and refuse a recording that "
+                           "fails (aisdf.ros.check)")
+
+
 class FrontendConfig(ServiceConfig):
     """Settings of ``aisdf-frontend``."""
 
     source: str = Field("synthetic", description="synthetic, or a dataset kind (generic, 7scenes, tum, ...)")
-    path: Path | None = Field(None, description="dataset folder (not for synthetic)")
+    path: Path | None = Field(None, description="dataset folder, or the recording for rosbag (not for synthetic)")
     building: str = Field("office", description="synthetic building: office, manhattan, atlanta, stairs, ...")
     seed: int = Field(0, description="synthetic building, trajectory and noise seed")
     n_frames: int = Field(900, ge=1, description="synthetic sequence length (frames)")
@@ -74,6 +91,7 @@ class FrontendConfig(ServiceConfig):
     sensor: str = Field("depth", description="sensor name put in every keyframe")
     keyframes: KeyframeConfig = Field(default_factory=KeyframeConfig)
     ros2: Ros2SourceConfig = Field(default_factory=Ros2SourceConfig)
+    rosbag: RosbagSourceConfig = Field(default_factory=RosbagSourceConfig)
     reliable: bool = Field(True, description="wait for a mapper, resend until acknowledged (protocol 1.2); false: "
                            "publish each keyframe once (mappers before 1.2 send no acknowledgements)")
     hold_max: int = Field(128, ge=1, description="keyframes held unacknowledged (no mapper, or in flight); the "

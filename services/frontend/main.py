@@ -22,7 +22,7 @@ from aisdf.config import add_common_args, config_from_args, service_setup
 from .config import FrontendConfig
 from .keyframes import KeyframeSelector
 from .outbox import KeyframeOutbox
-from .sources import open_source
+from .sources import list_source, open_source
 
 log = logging.getLogger("aisdf.frontend")
 
@@ -49,6 +49,8 @@ def stream(cfg: FrontendConfig, publish, stop: threading.Event, counts: dict | N
     if getattr(src, "live", False):
         return stream_live(cfg, src, selector, publish, stop, counts)
     counts.update(frames=0, keyframes=0, total=len(src))
+    if hasattr(src, "counts"):  # a recording: its images that could not be placed, by reason
+        counts["source"] = src.counts
     n = len(src)
     indices = range(cfg.start, n, cfg.stride)
     t0 = time.monotonic()
@@ -246,6 +248,18 @@ def cli(argv: list[str] | None = None) -> None:
     r.add_argument("--ros-fixed-frame", help="world frame of the poses (default map)")
     r.add_argument("--ros-idle-timeout", type=float, metavar="S",
                    help="end after S seconds without a depth image (default: run until stopped)")
+    b = p.add_argument_group("ROS recording (--source rosbag --path BAG: ROS 1 .bag, rosbag2 folder, .db3 or "
+                             ".mcap; any rosbag.* field with --set)")
+    b.add_argument("--list", action="store_true", help="print the recording's topics, frames, TF tree and the TF "
+                   "check's verdict, and exit")
+    b.add_argument("--depth-topic", help="depth image topic (default: the one depth image topic)")
+    b.add_argument("--info-topic", help="camera info topic (default: the one beside the depth topic)")
+    b.add_argument("--fixed-frame", help="world frame (default: root of the TF tree holding the image's frame)")
+    b.add_argument("--pose-topic", help="PoseStamped/Odometry topic instead of /tf")
+    b.add_argument("--camera-extrinsic", metavar="POSE", help="with --pose-topic: the camera's pose in the body "
+                   "frame, 'x y z qx qy qz qw' (or 'x y z yaw pitch roll', 16 numbers, 'optical [x y z]')")
+    b.add_argument("--camera-frame", help="camera frame instead of the images' header.frame_id")
+    b.add_argument("--no-tf-check", action="store_true", help="map the recording even when the TF check fails")
     args = p.parse_args(argv)
     cfg = config_from_args(FrontendConfig, args, {"source": args.source, "path": args.path,
                                                   "building": args.building, "max_frames": args.max_frames,
@@ -257,7 +271,20 @@ def cli(argv: list[str] | None = None) -> None:
                                                   "ros2.depth_topic": args.ros_depth_topic,
                                                   "ros2.info_topic": args.ros_info_topic,
                                                   "ros2.fixed_frame": args.ros_fixed_frame,
-                                                  "ros2.idle_timeout_s": args.ros_idle_timeout})
+                                                  "ros2.idle_timeout_s": args.ros_idle_timeout,
+                                                  "rosbag.depth_topic": args.depth_topic,
+                                                  "rosbag.info_topic": args.info_topic,
+                                                  "rosbag.fixed_frame": args.fixed_frame,
+                                                  "rosbag.pose_topic": args.pose_topic,
+                                                  "rosbag.camera_extrinsic": args.camera_extrinsic,
+                                                  "rosbag.camera_frame": args.camera_frame,
+                                                  "rosbag.tf_check": False if args.no_tf_check else None})
+    if args.list:
+        try:
+            print(list_source(cfg))
+        except (ValueError, FileNotFoundError) as e:
+            raise SystemExit(f"aisdf-frontend: {e}") from None
+        return
     stop = service_setup(cfg, "frontend")
     try:
         main(cfg, stop)

@@ -1,5 +1,6 @@
 """Frame sources the frontend streams: the built-in synthetic buildings and every dataset
-reader of ``aisdf.datasets``, and a live ROS 2 robot (``ros2``). A source has ``len()``,
+reader of ``aisdf.datasets``, ROS recordings (``rosbag``) and a live ROS 2 robot (``ros2``).
+A source has ``len()``,
 ``frame(i) -> dict(frame_id, stamp, depth (H,W) float32 metres, K, T_WC)``; a live source
 instead has ``live = True``, ``frames(stop)`` yielding such dicts as they come, ``counts``
 and ``close()``."""
@@ -38,7 +39,43 @@ def _ros2(cfg: FrontendConfig):
                       idle_timeout_s=r.idle_timeout_s, max_wait_s=r.max_wait_s)
 
 
-SOURCES: dict[str, Callable[[FrontendConfig], object]] = {"synthetic": _synthetic, "ros2": _ros2}
+def open_rosbag(cfg: FrontendConfig):
+    """A ROS 1 bag or rosbag2 recording (``aisdf.ros.bag.RosbagSource``), without the TF check."""
+    from aisdf.ros.bag import RosbagSource
+
+    if cfg.path is None:
+        raise ValueError("source 'rosbag' needs --path to the recording (.bag, rosbag2 folder, .db3 or .mcap)")
+    r = cfg.rosbag
+    return RosbagSource(cfg.path, depth_topic=r.depth_topic, info_topic=r.info_topic, fixed_frame=r.fixed_frame,
+                        pose_topic=r.pose_topic, camera_extrinsic=r.camera_extrinsic, camera_frame=r.camera_frame)
+
+
+def _rosbag(cfg: FrontendConfig):
+    """The recording, refused when no frame can be placed or its TF chain fails the check."""
+    import logging
+
+    from aisdf.ros.check import check_source
+
+    src = open_rosbag(cfg)
+    log = logging.getLogger("aisdf.frontend")
+    if len(src) == 0:
+        src.close()
+        raise ValueError(f"no frame of {cfg.path} can be placed: {src.summary()}")
+    if src.counts["skipped"]:
+        log.warning("%s: %s", cfg.path, src.summary())
+    if cfg.rosbag.tf_check:
+        verdict = check_source(src)
+        if not verdict.ok:
+            src.close()
+            raise ValueError(f"refusing to map {cfg.path}: {verdict} (fix the recording's TF or name the right "
+                             f"frames; --no-tf-check maps it anyway)")
+        log.info("%s", verdict)
+    else:
+        log.warning("TF check of %s skipped (--no-tf-check)", cfg.path)
+    return src
+
+
+SOURCES: dict[str, Callable[[FrontendConfig], object]] = {"synthetic": _synthetic, "ros2": _ros2, "rosbag": _rosbag}
 
 
 def open_source(cfg: FrontendConfig):
@@ -49,3 +86,18 @@ def open_source(cfg: FrontendConfig):
     if cfg.source in READERS:
         return _dataset(cfg)
     raise ValueError(f"unknown source {cfg.source!r}; choose one of {sorted(SOURCES) + sorted(READERS)}")
+
+
+def list_source(cfg: FrontendConfig) -> str:
+    """``--list``: what a recording holds and the TF check's verdict, in words."""
+    if cfg.source != "rosbag":
+        raise ValueError("--list describes a recording: use it with --source rosbag --path BAG")
+    from aisdf.ros.check import check_source
+
+    with open_rosbag(cfg) as src:
+        text = src.describe()
+        if len(src):
+            text += "\n" + str(check_source(src))
+        else:
+            text += "\nTF check: not run, no frame could be placed"
+    return text

@@ -21,8 +21,9 @@ Discovery (each overridden by its argument / flag):
 
 The bag is pre-scanned once: a first pass reads TF, camera info and poses into a
 :class:`~aisdf.ros.assemble.FrameAssembler` that keeps the whole TF history; a second pass
-feeds the depth images' headers through it and keeps, for each placed image, where it is in
-the bag (time and connection), its stamp, K and pose. ``frame(i)`` reads that one message again.
+feeds the depth images through it (each decoded once, so that an unreadable one is skipped and
+counted here, not met while streaming) and keeps, for each placed image, where it is in the bag
+(time and connection), its stamp, K and pose. ``frame(i)`` reads that one message again.
 Images that cannot be placed are skipped and counted (``counts``), never guessed."""
 
 from __future__ import annotations
@@ -134,7 +135,7 @@ class RosbagSource:
         # Pass 1: TF, camera info, poses (the whole history: cache_s=None).
         asm = FrameAssembler(depth_topic, info_topic, fixed_frame or "?", pose_topic=pose_topic,
                              camera_extrinsic=T_ext, camera_frame=camera_frame, tf_topics=dynamic,
-                             static_tf_topics=static, cache_s=None, decode_depth=False, max_pending=1_000_000,
+                             static_tf_topics=static, cache_s=None, decode_depth=True, max_pending=1_000_000,
                              max_wait_s=1e9)
         if pose_topic is not None:
             asm.fixed_frame = fixed_frame  # None: the pose messages' frame
@@ -194,7 +195,7 @@ class RosbagSource:
     def _add(self, frames: list[dict]) -> None:
         for f in frames:
             self._index.append({"frame_id": f["frame_id"], "stamp": f["stamp"], "K": f["K"], "T_WC": f["T_WC"],
-                                "ref": f["ref"], "msgtype": f["msgtype"]})
+                                "ref": f["ref"], "msgtype": self.depth_type})  # the depth is read again later
 
     # ---- source interface -----------------------------------------------------------------
     def __len__(self) -> int:
