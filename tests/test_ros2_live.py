@@ -207,3 +207,40 @@ def test_live_ros2_robot_maps_like_the_protocol_v1_frontend(tmp_path):
     e_ros, _ = cmp.trained_error(r["keyframes"], pts, gt, steps_first=30, steps_per=10, width=32)
     print(f"same training ({steps} steps): protocol v1 {100 * e_ref:.2f} cm, ROS 2 {100 * e_ros:.2f} cm")
     assert e_ros <= 1.1 * e_ref and e_ref < 0.5
+
+
+def test_replay_republishes_a_rosbag2_recording(ros_router, tmp_path):
+    import threading
+
+    from rosbags.rosbag2 import StoragePlugin, Writer
+
+    from aisdf.ros.replay import replay_bag
+
+    ep, _router = ros_router
+    ts = rz.open_typestore("jazzy")
+    String = ts.types[STRING]
+    bag = tmp_path / "chatter"
+    with Writer(bag, version=9, storage_plugin=StoragePlugin.MCAP) as w:
+        c = w.add_connection("/chatter", STRING, typestore=ts)
+        for k in range(3):
+            w.write(c, 1_000_000_000 + k * 10_000_000, ts.serialize_cdr(String(data=f"recorded {k}"), STRING))
+    s_play, s_sub = rz.open_ros_session([ep]), rz.open_ros_session([ep])
+    node = None
+    try:
+        node = rz.Node(s_sub, "listener")
+        got = []
+        node.create_subscription("/chatter", STRING, lambda m, i: got.append(m.data))
+        time.sleep(0.5)
+        out = replay_bag(s_play, bag, threading.Event(), rate=1.0)
+        deadline = time.monotonic() + 5
+        while len(got) < 3 and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert out == {"messages": 3, "topics": ["/chatter"]}
+        assert got == ["recorded 0", "recorded 1", "recorded 2"]
+        with pytest.raises(ValueError, match="ROS 1 bag"):
+            replay_bag(s_play, tmp_path / "old.bag", threading.Event())
+    finally:
+        if node:
+            node.close()
+        s_play.close()
+        s_sub.close()

@@ -2,7 +2,7 @@
 
     python -m aisdf.ros.replay                                   # the synthetic office, 30 fps
     python -m aisdf.ros.replay --connect tcp/127.0.0.1:7447 --building atlanta --n-frames 600
-    python -m aisdf.ros.replay --bag run1.mcap                   # a rosbag2 (.mcap/.db3) or ROS 1 bag
+    python -m aisdf.ros.replay --bag run1                        # a rosbag2 recording (.mcap/.db3)
 
 It is a ROS 2 node (``aisdf_robot``) that follows rmw_zenoh's design (:mod:`aisdf.ros.rmw_zenoh`:
 data keys with the type hash, attachments, liveliness tokens, CDR). The synthetic robot
@@ -22,8 +22,8 @@ The chain ``map -> odom -> base_link -> camera_link -> camera_depth_optical_fram
 the sequence's camera pose ``T_WC`` exactly at every image stamp (``map`` = the sequence's world
 frame), so a subscriber that handles TF right recovers the synthetic frames to float precision.
 
-A bag is republished message by message at its recorded pace (``--rate`` to speed it up),
-``/tf_static`` as transient local; ROS 1 messages are converted to CDR.
+A rosbag2 recording is republished message by message at its recorded pace (``--rate`` to
+speed it up), its CDR as recorded, ``/tf_static`` as transient local (ROS 1 bags are refused).
 """
 
 from __future__ import annotations
@@ -200,19 +200,21 @@ class SyntheticRobot:
 
 def replay_bag(session, path, stop: threading.Event, domain_id: int = 0, distro: str = "jazzy",
                rate: float = 1.0, topics: list[str] | None = None) -> dict:
-    """Republish a bag's messages (rosbag2 CDR as is; ROS 1 converted to CDR) at ``rate``
-    times their recorded pace; ``/tf_static`` as transient local."""
+    """Republish a rosbag2 recording's messages (their CDR as recorded) at ``rate`` times their
+    recorded pace (0: as fast as possible); ``/tf_static`` as transient local. ROS 1 bags are
+    refused: their messages (e.g. a Header with ``seq``) are not ROS 2 messages."""
     from pathlib import Path
 
     from rosbags.highlevel import AnyReader
 
+    if Path(path).suffix == ".bag":
+        raise ValueError(f"{path}: a ROS 1 bag; only rosbag2 recordings (.mcap, .db3) can be replayed as ROS 2")
     node = rz.Node(session, "aisdf_bag_player", "/", domain_id, distro)
     pubs: dict = {}
     n = 0
     try:
         with AnyReader([Path(path)], default_typestore=node.typestore) as reader:
             conns = [c for c in reader.connections if not topics or c.topic in topics]
-            ros1 = reader.is2 is False
             start, first = time.monotonic(), None
             for conn, t_ns, raw in reader.messages(connections=conns):
                 if stop.is_set():
@@ -226,8 +228,7 @@ def replay_bag(session, path, stop: threading.Event, domain_id: int = 0, distro:
                 if key not in pubs:
                     qos = rz.TF_STATIC_QOS if conn.topic == "/tf_static" else rz.QoS(depth=10)
                     pubs[key] = node.create_publisher(conn.topic, conn.msgtype, qos)
-                cdr = reader.typestore.ros1_to_cdr(raw, conn.msgtype) if ros1 else raw
-                pubs[key].publish_raw(cdr)
+                pubs[key].publish_raw(raw)
                 n += 1
     finally:
         node.close()
@@ -265,7 +266,11 @@ def main(argv: list[str] | None = None) -> int:
     session = rz.open_ros_session(args.connect, args.zenoh_config)
     try:
         if args.bag:
-            out = replay_bag(session, args.bag, stop, args.domain_id, args.distro, args.rate)
+            try:
+                out = replay_bag(session, args.bag, stop, args.domain_id, args.distro, args.rate)
+            except Exception as e:  # noqa: BLE001 - a bad recording: say why, exit 2
+                log.error("cannot replay %s: %s: %s", args.bag, type(e).__name__, e)
+                return 2
             log.info("replayed %d messages on %s", out["messages"], ", ".join(out["topics"]))
             return 0
         from aisdf.synthetic import SyntheticSequence
