@@ -130,7 +130,7 @@ def ros_router():
         yield endpoint(port), router
 
 
-def test_nodes_talk_discover_and_fetch_static_transforms_late(ros_router):
+def test_nodes_talk_discover_and_fetch_static_transforms_late(ros_router, capsys):
     ep, _router = ros_router
     s_pub, s_sub = rz.open_ros_session([ep]), rz.open_ros_session([ep])
     talker = listener = None
@@ -169,6 +169,11 @@ def test_nodes_talk_discover_and_fetch_static_transforms_late(ros_router):
         static_pub = next(e for e in graph if e.kind == rz.PUBLISHER and e.topic == "/tf_static_like")
         assert static_pub.qos == rz.TF_STATIC_QOS
         assert rz.discover(s_sub, 1) == []  # another domain sees nothing
+        capsys.readouterr()
+        assert rz.main(["--connect", ep, "--timeout", "1"]) == 0  # python -m aisdf.ros.rmw_zenoh
+        listing = capsys.readouterr().out
+        assert "/talker\n" in listing and "publishes  /chatter  [std_msgs/msg/String]  qos ::,7:,:,:,," in listing
+        assert "subscribes /tf_static_like  [std_msgs/msg/String]  qos :1:,100:,:,:,," in listing
     finally:
         for n in (listener, talker):
             if n:

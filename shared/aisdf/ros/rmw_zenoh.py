@@ -517,3 +517,39 @@ def open_ros_session(connect: list[str] | None = None, config_file: str | None =
     if not config_file:
         conf.insert_json5("scouting/multicast/enabled", "false")
     return zenoh.open(conf)
+
+
+def main(argv: list[str] | None = None) -> int:
+    """``python -m aisdf.ros.rmw_zenoh``: print the ROS 2 graph an rmw_zenoh router knows
+    (nodes, and the topics each publishes and subscribes, with types): to find a robot's depth,
+    camera info and TF topics for ``aisdf-frontend --source ros2``."""
+    import argparse
+
+    p = argparse.ArgumentParser(prog="python -m aisdf.ros.rmw_zenoh", description=main.__doc__.split(":")[0])
+    p.add_argument("--connect", action="append", metavar="ENDPOINT", help=f"router (default {DEFAULT_ROUTER})")
+    p.add_argument("--zenoh-config", metavar="FILE", help="Zenoh session file (as ZENOH_SESSION_CONFIG_URI)")
+    p.add_argument("--domain-id", type=int, default=domain_from_env(), help="default $ROS_DOMAIN_ID or 0")
+    p.add_argument("--timeout", type=float, default=3.0)
+    a = p.parse_args(argv)
+    with open_ros_session(a.connect, a.zenoh_config) as session:
+        time.sleep(0.5)  # let the session reach the router
+        graph = discover(session, a.domain_id, a.timeout)
+    nodes = sorted({(e.namespace, e.node_name) for e in graph})
+    if not nodes:
+        print(f"no ROS 2 node seen on domain {a.domain_id} (router {a.connect or [DEFAULT_ROUTER]})")
+        return 1
+    for ns, name in nodes:
+        print(f"{ns.rstrip('/')}/{name}")
+        for e in sorted((e for e in graph if (e.namespace, e.node_name) == (ns, name) and e.kind != NODE),
+                        key=lambda e: (e.kind, e.topic)):
+            what = {PUBLISHER: "publishes", SUBSCRIPTION: "subscribes", SERVICE: "serves", CLIENT: "calls"}[e.kind]
+            try:
+                typ = e.msgtype
+            except ValueError:
+                typ = e.dds_type
+            print(f"  {what:10s} {e.topic}  [{typ}]  qos {qos_to_keyexpr(e.qos)}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
