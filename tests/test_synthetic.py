@@ -11,7 +11,7 @@ from aisdf.synthetic import (
     BUILDINGS, Boxes, KinectNoise, Room, Scene, SyntheticSequence, make_building,
     make_trajectory, nguyen_sigma, render_depth, render_depth_and_cos,
 )
-from aisdf.synthetic.buildings import random_world_frame
+from aisdf.synthetic.buildings import PLANS, random_world_frame
 from aisdf.synthetic.scene import rot_z
 
 
@@ -145,10 +145,10 @@ def test_planes_and_mesh_lie_on_surfaces(name):
     assert np.abs(s.sdf(m.vertices)).max() < 1e-9
     lo, hi = s.bounds()
     assert np.all(m.vertices >= lo - 1e-9) and np.all(m.vertices <= hi + 1e-9)
-    assert np.all(hi - lo <= 9.0)
+    assert np.all(hi - lo <= (30.0 if name in PLANS else 9.0))  # a floor is bigger than a room
 
 
-@pytest.mark.parametrize("name,seed", [(n, 0) for n in sorted(BUILDINGS)] + [("office", 1), ("stairs", 2)])
+@pytest.mark.parametrize("name,seed", [(n, 0) for n in sorted(BUILDINGS) if n not in PLANS] + [("office", 1), ("stairs", 2)])
 def test_trajectory_clearance_height_and_smoothness(name, seed):
     s = make_building(name, seed)
     fps, speed = 30.0, 0.4

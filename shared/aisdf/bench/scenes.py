@@ -4,6 +4,9 @@ and the field it is scored against.
 * ``manhattan``, ``atlanta``, ``stairs``: the built-in synthetic buildings
   (``aisdf.synthetic``) with Kinect-like noise; ground truth is the exact analytic SDF and
   gradient. The world frame is tilted, so "up" is not a world axis.
+* ``floor``: the synthetic multi-room floor (a corridor, seven rooms, a wing turned 42
+  degrees), walked room by room; its ``n_frames`` are spread over the whole walk (about
+  200 s: 600 frames = 3 fps) unless ``fps`` is given.
 * ``replica-office``: the Replica office mesh rendered along its 2000-pose trajectory
   (``open_dataset("mesh")``) with ``KinectNoise``; ground truth is the mesh's signed
   distance (pseudo-normal sign: the mesh's normals face the rooms), either exact
@@ -27,7 +30,7 @@ import numpy as np
 
 from ..geometry import intrinsics
 
-SYNTHETIC = ("manhattan", "atlanta", "stairs")
+SYNTHETIC = ("manhattan", "atlanta", "stairs", "floor")
 REFERENCE_LABEL = "reference, not truth"
 
 
@@ -83,10 +86,13 @@ def camera_up(poses: np.ndarray) -> np.ndarray:
 
 
 def synthetic_scene(name: str, opts: dict, data: Path | None) -> BenchScene:
-    from ..synthetic import SyntheticSequence
+    from ..synthetic import PLANS, SyntheticSequence
+    from ..synthetic.trajectory import walk_duration
 
-    seq = SyntheticSequence(building=name, n_frames=int(opts.get("n_frames", 300)), H=int(opts.get("H", 120)),
-                            W=int(opts.get("W", 160)), fps=float(opts.get("fps", 30.0)),
+    n_frames = int(opts.get("n_frames", 300))
+    fps = 30.0 if name not in PLANS else n_frames / walk_duration(PLANS[name]())  # a walk: all of it
+    seq = SyntheticSequence(building=name, n_frames=n_frames, H=int(opts.get("H", 120)),
+                            W=int(opts.get("W", 160)), fps=float(opts.get("fps", fps)),
                             noise=bool(opts.get("noise", True)), seed=int(opts.get("scene_seed", 0)))
     lo, hi = seq.scene.bounds()
     return BenchScene(
@@ -194,6 +200,7 @@ SCENES: dict[str, Callable[[str, dict, Path | None], BenchScene]] = {
     "manhattan": synthetic_scene,
     "atlanta": synthetic_scene,
     "stairs": synthetic_scene,
+    "floor": synthetic_scene,
     "replica-office": replica_office,
     "7scenes-redkitchen": sevenscenes_redkitchen,
 }

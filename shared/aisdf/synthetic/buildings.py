@@ -8,17 +8,23 @@ walls) but never interpenetrate.
 
 Horizontal directions (canonical azimuth of wall / face normals, mod 180 degrees):
 manhattan {0, 90}; atlanta (hexagon) {90, 150, 30} walls + {0} furniture; office
-(non-convex, one 60-degree wall) {90, 0, 30} walls + {120} furniture; stairs {0, 90}.
+(non-convex, one 60-degree wall) {90, 0, 30} walls + {120} furniture; stairs {0, 90};
+floor (a corridor, seven rooms behind doors, a wing turned 42 degrees) {0, 90, 42, 132}.
 Every pair of directions is at least 30 degrees apart.
+
+Buildings with a ``FloorPlan`` (``PLANS``: named room regions and a walk through every
+room) are walked by ``trajectory.make_walk`` instead of the closed loop of
+``make_trajectory``.
 """
 
 from __future__ import annotations
 
+from dataclasses import dataclass, field
 from typing import Callable
 
 import numpy as np
 
-from .primitives import Boxes, Room
+from .primitives import Boxes, Room, polygon_contains
 from .scene import Scene, rot_z
 
 Box = tuple[np.ndarray, np.ndarray, np.ndarray]  # center, rotation, half size
@@ -154,12 +160,205 @@ def stairs(seed: int = 0) -> Scene:
     return L.scene(poly, 3.0, "stairs")
 
 
+# ------------------------------------------------------------------ a multi-room floor
+
+WING_DEG = 42.0  # the east wing is turned this much against the main wing
+WING_LEN = 12.5  # length of the east wing along its corridor (m)
+_T_WALL = 0.12  # interior wall thickness (m); boxes sit on the room side of each wall line
+_DOOR_W, _DOOR_H = 1.0, 2.1  # door openings: width, height (a lintel closes the wall above)
+
+
+@dataclass(frozen=True)
+class Visit:
+    """One room of a walk: enter through the door, look around at ``look``, leave the way
+    it came. Canonical 2D points: ``corridor`` (in front of the door, on the corridor's
+    centre line), ``door`` (the opening's centre), ``look`` (where the camera turns round)."""
+
+    room: str
+    corridor: np.ndarray
+    door: np.ndarray
+    look: np.ndarray
+
+
+@dataclass(frozen=True)
+class FloorPlan:
+    """Named regions (canonical polygons, counter-clockwise) and the walk through them:
+    ``start`` and ``end`` on the corridor, ``visits`` in order, ``route`` extra corridor
+    points walked between visits (keyed by the index of the visit they precede; -1 = after
+    the last one)."""
+
+    regions: dict[str, np.ndarray]
+    start: np.ndarray
+    visits: tuple[Visit, ...]
+    end: np.ndarray
+    route: dict[int, tuple[np.ndarray, ...]] = field(default_factory=dict)
+
+    def region_of(self, xy: np.ndarray) -> np.ndarray:
+        """(N, 2) canonical points -> (N,) region index into ``names`` (-1: none)."""
+        out = np.full(len(xy), -1)
+        for i, poly in enumerate(self.regions.values()):
+            out[(out < 0) & polygon_contains(np.asarray(xy, dtype=float), poly)] = i
+        return out
+
+    @property
+    def names(self) -> list[str]:
+        return list(self.regions)
+
+
+class _Frame2D:
+    """A room's local 2D frame: ``origin`` and ``yaw`` (rad); local u, v -> canonical x, y."""
+
+    def __init__(self, origin, yaw: float) -> None:
+        self.o, self.yaw = np.asarray(origin, dtype=float), float(yaw)
+        self.R = rot_z(yaw)[:2, :2]
+
+    def __call__(self, u: float, v: float) -> np.ndarray:
+        return self.o + self.R @ np.array([u, v], dtype=float)
+
+
+def _wall(L: _Layout, a, b, height: float, doors=(), side: float = 1.0, t: float = _T_WALL) -> None:
+    """A wall from ``a`` to ``b`` (2D) of thickness ``t`` on the ``side`` (+1 left of a->b,
+    -1 right) of the line, with door openings centred at the given distances from ``a``
+    (each ``_DOOR_W`` wide, a lintel above ``_DOOR_H``)."""
+    a, b = np.asarray(a, dtype=float), np.asarray(b, dtype=float)
+    length = float(np.linalg.norm(b - a))
+    yaw = float(np.arctan2(*(b - a)[::-1]))
+    f = _Frame2D(a, yaw)
+    cuts = [0.0]
+    for s in sorted(doors):
+        cuts += [s - _DOOR_W / 2, s + _DOOR_W / 2]
+    cuts.append(length)
+    for k in range(0, len(cuts), 2):
+        s0, s1 = cuts[k], cuts[k + 1]
+        if s1 - s0 > 1e-6:
+            L.local_box(f.o, yaw, (s0 + s1) / 2, side * t / 2, s1 - s0, t, height)
+    for s in doors:
+        L.local_box(f.o, yaw, s, side * t / 2, _DOOR_W, t, height - _DOOR_H, z0=_DOOR_H)
+
+
+def _floor_geometry() -> dict:
+    """The floor's fixed lines (canonical, metres): the main wing (x in [0, 12]; rooms 1-3
+    south of the corridor y in [4.5, 6.5], rooms 4-5 north of it) and the east wing turned
+    ``WING_DEG`` about O = (12, 4.5) (its corridor v in [0, 2], rooms 6-7 at v in [-4.5, 0],
+    u along the wing up to ``WING_LEN``)."""
+    a = np.radians(WING_DEG)
+    d, n = np.array([np.cos(a), np.sin(a)]), np.array([-np.sin(a), np.cos(a)])
+    O = np.array([12.0, 4.5])
+    wing = lambda u, v: O + u * d + v * n  # noqa: E731
+    # Where the wing's outer south wall (v = -4.5) meets y = 0, and its north wall (v = 2) y = 6.5.
+    s0 = wing(0, -4.5)
+    P1 = s0 + (-s0[1] / d[1]) * d
+    q0 = wing(0, 2.0)
+    Q = q0 + ((6.5 - q0[1]) / d[1]) * d
+    return dict(d=d, n=n, O=O, wing=wing, P1=P1, Q=Q, P2=wing(WING_LEN, -4.5), P3=wing(WING_LEN, 2.0))
+
+
+def floor_plan() -> FloorPlan:
+    """Rooms and corridor of ``floor`` as canonical polygons, and the walk's visits."""
+    g = _floor_geometry()
+    O, wing, P1, P2, P3, Q = g["O"], g["wing"], g["P1"], g["P2"], g["P3"], g["Q"]
+    box = lambda x0, y0, x1, y1: np.array([[x0, y0], [x1, y0], [x1, y1], [x0, y1]], dtype=float)  # noqa: E731
+    regions = {
+        "corridor": np.array([[0, 4.5], O, wing(WING_LEN, 0), P3, Q, [0, 6.5]], dtype=float),
+        "room1": box(0, 0, 4, 4.5), "room2": box(4, 0, 8, 4.5), "room3": box(8, 0, 12, 4.5),
+        "room4": box(0, 6.5, 5.5, 11.5), "room5": box(5.5, 6.5, Q[0], 11.5),
+        "room6": np.array([[12, 0], P1, wing(5.5, -4.5), wing(5.5, 0), O], dtype=float),
+        "room7": np.array([wing(5.5, -4.5), P2, wing(WING_LEN, 0), wing(5.5, 0)], dtype=float),
+    }
+    hinge = wing(0, 1.0)
+    hinge = hinge + ((5.5 - hinge[1]) / g["d"][1]) * g["d"]  # both corridors' centre lines meet here
+    main = lambda x, side, depth: (  # noqa: E731
+        np.array([x, 5.5]), np.array([x, 4.5 if side < 0 else 6.5]), np.array([x, 5.5 + side * (1.0 + depth)]))
+    wvis = lambda u: (wing(u, 1.0), wing(u, 0.0), wing(u, -2.25))  # noqa: E731
+    visits = (
+        Visit("room1", *main(1.4, -1, 2.25)), Visit("room4", *main(2.75, +1, 2.5)),
+        Visit("room2", *main(6.0, -1, 2.25)), Visit("room5", *main(8.5, +1, 2.5)),
+        Visit("room3", *main(10.6, -1, 2.25)),
+        Visit("room6", *wvis(2.8)), Visit("room7", *wvis(8.7)),
+    )
+    return FloorPlan(regions, np.array([0.9, 5.5]), visits, wing(WING_LEN - 1.0, 1.0), {5: (hinge,)})
+
+
+def floor(seed: int = 0) -> Scene:
+    """A building floor, about 24 x 14 x 2.7 m: a corridor with seven rooms behind door
+    openings (1 m wide, 2.1 m high); rooms 1-5 in the main wing, rooms 6-7 in an east wing
+    turned 42 degrees (room 6 fills the wedge between the wings); furniture in every room
+    (desks, chairs, shelves, cabinets, boxes) aligned with its walls, and two cabinets in
+    the corridor. Walls between rooms are 12 cm boxes with lintels over the doors, so the
+    SDF stays the exact minimum of the outer walls' and the solids' distances. Horizontal
+    directions {0, 90, 42, 132} degrees. ``floor_plan()`` names the rooms' regions."""
+    L = _Layout(np.random.default_rng([seed, 15]), 0.12)
+    g = _floor_geometry()
+    O, wing, P1, P2, P3, Q, h = g["O"], g["wing"], g["P1"], g["P2"], g["P3"], g["Q"], 2.7
+    wy = float(np.arctan2(g["d"][1], g["d"][0]))
+    poly = np.array([[0, 0], P1, P2, P3, Q, [Q[0], 11.5], [0, 11.5]], dtype=float)
+    plan = floor_plan()
+    door = {v.room: v.door for v in plan.visits}
+    # Walls (boxes on the rooms' side of the corridor lines).
+    _wall(L, (0, 4.5), O, h, [door[r][0] for r in ("room1", "room2", "room3")], side=-1)
+    _wall(L, (0, 6.5), Q, h, [door[r][0] for r in ("room4", "room5")], side=+1)
+    _wall(L, O, wing(WING_LEN, 0), h, [2.8, 8.7], side=-1)
+    for x in (4.0, 8.0):
+        L.box(x, 4.5 / 2 - 0.06, _T_WALL, 4.5 - 0.12, h)
+    L.box(12.0 + _T_WALL / 2, 2.25, _T_WALL, 4.5, h)  # room 3 | room 6 (also fills the corner at O)
+    L.box(5.5, 9.0 + 0.06, _T_WALL, 5.0 - 0.12, h)  # room 4 | room 5
+    c = wing(5.5, -2.25 - 0.06)
+    L.local_box(c, wy, 0, 0, _T_WALL, 4.5 - 0.12, h)  # room 6 | room 7
+    j = L.j
+    # Rooms 1-3 (south; local frame: u along -x, v along -y from the corridor wall).
+    for k, (x1, du) in enumerate(((4.0, 2.6), (8.0, 2.0), (12.0, 1.4))):
+        F = _Frame2D((x1, 4.5), np.pi)
+        far = 0.9 if du > 2.0 else 3.1  # the side away from the door
+        p = F(far + j(), 3.95)
+        L.table(*p, 1.3, 0.7, 0.74, np.pi)
+        L.chair(*F(far + j(), 3.35), np.pi)  # facing the desk, its back towards the door
+        if k != 1:  # a shelf on the back wall, or a cabinet on the side wall
+            L.shelf(*F(4.0 - far + j(0.5), 4.5 - 0.175), 1.0, 0.35, 1.9, 5, 0.0)
+        else:
+            L.box(*F(0.42, 3.6 + j()), 0.6, 0.9, 0.9)
+        L.box(*F(far + j(0.5), 0.55), 0.5, 0.5, 0.5 + 0.1 * k)  # in the front corner away from the door
+    # Rooms 4-5 (north; local frame = canonical, origin at the corridor wall).
+    F4 = _Frame2D((0.0, 6.5), 0.0)
+    L.table(*F4(1.6 + j(), 3.6 + j()), 1.6, 0.9, 0.74)
+    L.chair(*F4(1.2 + j(0.5), 2.85), 0.0)
+    L.chair(*F4(2.0 + j(0.5), 4.3), np.pi)
+    L.shelf(*F4(5.5 - 0.06 - 0.175, 2.4 + j()), 1.2, 0.35, 2.0, 5, np.pi / 2)
+    L.box(*F4(0.45, 0.5 + 0.12 + j(0.5)), 0.7, 0.7, 0.6)
+    F5 = _Frame2D((5.5, 6.5), 0.0)
+    L.table(*F5(4.4 + j(), 3.7 + j()), 0.8, 1.6, 0.74)
+    L.chair(*F5(3.75, 3.7 + j(0.5)), -np.pi / 2)
+    L.box(*F5(0.06 + 0.3 + 0.12, 3.2 + j()), 0.6, 1.2, 1.0)  # cabinet against the room 4 wall
+    sb = F5(0.8 + j(), 4.8)
+    L.box(*sb, 0.9, 0.4, 0.75)  # sideboard on the north wall
+    L.box(*sb, 0.4, 0.3, 0.3, z0=0.75)  # something on it
+    # Rooms 6-7 (the wing; local u along the wing, v into the room from the corridor wall).
+    Fw = _Frame2D(O, wy)  # wing frame: canonical = O + u d + v n
+    L.table(*Fw(4.3 + j(), -3.65), 1.4, 0.7, 0.74, wy)
+    L.chair(*Fw(4.3 + j(0.5), -3.05), wy + np.pi)
+    L.box(*Fw(0.8 + j(0.5), -0.12 - 0.225), 0.8, 0.45, 1.1, yaw=wy)  # cabinet by the corridor wall
+    L.box(12.0 + 0.12 + 0.3, 0.6 + j(), 0.6, 0.6, 0.7)  # in the wedge, against the room 3 wall
+    L.box(12.0 + 0.12 + 0.3, 0.6, 0.4, 0.4, 0.35, z0=0.7)
+    L.table(*Fw(10.2 + j(), -3.3 + j()), 1.6, 0.9, 0.74, wy)
+    L.chair(*Fw(10.2 + j(0.5), -2.55), wy + np.pi)
+    L.chair(*Fw(9.9 + j(0.5), -4.05 + 0.0), wy)
+    L.shelf(*Fw(WING_LEN - 0.175, -3.4 + j()), 1.2, 0.35, 2.0, 4, wy + np.pi / 2)
+    L.box(*Fw(6.4 + j(0.5), -4.275), 0.8, 0.45, 0.8, yaw=wy)
+    # Corridor: two cabinets against walls, away from the doors.
+    L.box(4.0 + j(), 6.5 - 0.2, 0.8, 0.4, 1.0)
+    L.local_box(wing(5.8 + j(), 2.0), wy, 0, -0.2, 0.8, 0.4, 1.0)
+    return L.scene(poly, h, "floor")
+
+
 BUILDINGS: dict[str, Callable[[int], Scene]] = {
     "manhattan": manhattan,
     "atlanta": atlanta,
     "stairs": stairs,
     "office": office,
+    "floor": floor,
 }
+
+# Buildings walked room by room (``trajectory.make_walk``): name -> its plan (canonical frame).
+PLANS: dict[str, Callable[[], FloorPlan]] = {"floor": floor_plan}
 
 
 def random_world_frame(seed: int, tilt_deg: tuple[float, float] = (20.0, 70.0), offset: float = 2.0) -> np.ndarray:

@@ -155,3 +155,114 @@ def make_trajectory(
     T[:, :3, :3] = look_rotation(yaw, pitch)
     T[:, :3, 3] = p
     return scene.T_W_canon[None] @ T
+
+
+# ------------------------------------------------------------------ a walk through a floor plan
+
+
+def _walk_plan(plan, speed: float, spin_deg: float, spin_rate: float):
+    """Key times (K,), canonical positions (K, 2) and the heading wanted after each key
+    (None while moving: the direction of motion), plus the spin intervals per room."""
+    pts: list[np.ndarray] = [np.asarray(plan.start, dtype=float)]
+    spins: list[tuple[int, str]] = []  # (index of the look point in pts, room)
+    for i, v in enumerate(plan.visits):
+        pts += [np.asarray(p, dtype=float) for p in plan.route.get(i, ())]
+        pts += [v.corridor, v.door, v.look]
+        spins.append((len(pts) - 1, v.room))
+        pts += [v.door, v.corridor]
+    pts += [np.asarray(p, dtype=float) for p in plan.route.get(-1, ())] + [np.asarray(plan.end, dtype=float)]
+    spin_at = dict(spins)
+    times, where, spin_windows = [0.0], [pts[0]], {}
+    for k in range(1, len(pts)):
+        seg = float(np.linalg.norm(pts[k] - pts[k - 1]))
+        if seg < 1e-9:
+            continue
+        times.append(times[-1] + seg / speed)
+        where.append(pts[k])
+        if k in spin_at:
+            t0 = times[-1]
+            times.append(t0 + spin_deg / spin_rate)
+            where.append(pts[k])
+            spin_windows[spin_at[k]] = (t0, times[-1])
+    return np.array(times), np.array(where), spin_windows
+
+
+def walk_duration(plan, speed: float = 0.6, spin_deg: float = 540.0, spin_rate: float = 45.0) -> float:
+    """Seconds ``make_walk`` takes through ``plan`` with these settings."""
+    return float(_walk_plan(plan, speed, spin_deg, spin_rate)[0][-1])
+
+
+def make_walk(
+    scene: Scene, plan, n_frames: int, seed: int = 0, *, fps: float = 30.0, speed: float = 0.6,
+    spin_deg: float = 540.0, spin_rate: float = 45.0, height: float = 1.35, pitch_deg: float = 15.0,
+    sweep_deg: float = 25.0, max_yaw_rate: float = 45.0, clearance: float = 0.25,
+) -> tuple[np.ndarray, dict[str, tuple[float, float]], float]:
+    """A walk through ``plan`` (a ``buildings.FloorPlan``): along the corridor, into each
+    room through its door to its look point, a turn of ``spin_deg`` degrees there at
+    ``spin_rate`` deg/s (ending towards the door), and back out, at ``speed`` m/s.
+
+    Returns (poses (n_frames, 4, 4) T_WC for t = i / ``fps`` s, the visits {room: (t_in,
+    t_out)}: the stream times between which the camera is inside that room's region, and
+    the walk's duration in s). Frames after the walk's end hold its last pose. The camera
+    faces where it walks, with a slow +-``sweep_deg`` sweep, yaw rate at most
+    ``max_yaw_rate`` deg/s, pitched ``pitch_deg`` down (+- 4 degrees), at ``height`` m
+    (+- 0.1 m); its centre keeps ``scene.sdf >= clearance`` (checked: RuntimeError if not).
+    """
+    rng = np.random.default_rng([seed, 5])
+    key_t, key_xy, spin_windows = _walk_plan(plan, speed, spin_deg, spin_rate)
+    duration = float(key_t[-1])
+    dt = 1.0 / fps
+    t = np.arange(n_frames) * dt
+    # Fine time grid for the yaw filter.
+    fine_dt = min(dt, 0.05)
+    tf = np.arange(0.0, duration + fine_dt, fine_dt)
+    xy = np.c_[np.interp(tf, key_t, key_xy[:, 0]), np.interp(tf, key_t, key_xy[:, 1])]
+    vel = np.gradient(xy, fine_dt, axis=0)
+    moving = np.linalg.norm(vel, axis=1) > 1e-3
+    head = np.arctan2(vel[:, 1], vel[:, 0])
+    spin_sign = {}
+    want = np.empty(len(tf))
+    prev = float(head[np.argmax(moving)]) if moving.any() else 0.0
+    for i in range(len(tf)):
+        room = next((r for r, (a, b) in spin_windows.items() if a <= tf[i] <= b), None)
+        if room is not None:
+            a, b = spin_windows[room]
+            s = spin_sign.setdefault(room, 1.0 if len(spin_sign) % 2 == 0 else -1.0)
+            if i == 0 or not (a <= tf[i - 1] <= b):
+                base = prev
+                spin_sign[room + "_base"] = base
+            want[i] = spin_sign[room + "_base"] + s * np.radians(spin_deg) * (tf[i] - a) / (b - a)
+        elif moving[i]:
+            want[i] = prev + np.angle(np.exp(1j * (head[i] - prev)))  # nearest equivalent heading
+        else:
+            want[i] = prev
+        prev = want[i]
+    phase = rng.uniform(0, 2 * np.pi, 3)
+    in_spin = np.zeros(len(tf), bool)
+    for a, b in spin_windows.values():
+        in_spin |= (tf >= a) & (tf <= b)
+    sweep = np.radians(sweep_deg) * np.sin(2 * np.pi * tf / 8.0 + phase[0]) * ~in_spin
+    yaw = _rate_limit(want + gaussian_filter1d(sweep, 0.5 / fine_dt), np.radians(max_yaw_rate) * fine_dt * 0.9)
+    yaw = gaussian_filter1d(yaw, 0.25 / fine_dt, mode="nearest")
+    # Sample the fine grid at the frame times.
+    t = np.minimum(t, duration)  # held after the end
+    yaw_t = np.interp(t, tf, yaw)
+    pos = np.c_[np.interp(t, key_t, key_xy[:, 0]), np.interp(t, key_t, key_xy[:, 1])]
+    z = height + 0.1 * np.sin(2 * np.pi * t / 11.0 + phase[1])
+    pitch = np.radians(pitch_deg + 4.0 * np.sin(2 * np.pi * t / 9.0 + phase[2]))
+    T = np.tile(np.eye(4), (n_frames, 1, 1))
+    T[:, :3, :3] = look_rotation(yaw_t, pitch)
+    T[:, :3, 3] = np.c_[pos, z]
+    T_W = scene.T_W_canon[None] @ T
+    if n_frames and np.min(scene.sdf(T_W[:, :3, 3])) < clearance:
+        raise RuntimeError(f"the walk comes within {np.min(scene.sdf(T_W[:, :3, 3])):.3f} m of a surface")
+    # Visits: when the camera centre is inside each room's region (fine grid, whole walk).
+    tv = np.arange(0.0, duration + fine_dt, fine_dt)
+    pv = np.c_[np.interp(tv, key_t, key_xy[:, 0]), np.interp(tv, key_t, key_xy[:, 1])]
+    reg = plan.region_of(pv)
+    visits = {}
+    for v in plan.visits:
+        inside = np.flatnonzero(reg == plan.names.index(v.room))
+        if len(inside):
+            visits[v.room] = (float(tv[inside[0]]), float(tv[inside[-1]]))
+    return T_W, visits, duration
