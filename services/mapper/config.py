@@ -8,6 +8,7 @@ from typing import Any, Literal
 from pydantic import Field
 
 from aisdf.config import ServiceConfig
+from aisdf.submaps.pipeline import SubmapConfig
 
 
 class MapperConfig(ServiceConfig):
@@ -21,6 +22,9 @@ class MapperConfig(ServiceConfig):
     atlanta: bool = Field(True, description="estimate the Atlanta frame and surfels, publish map/surfels")
     surfel_mask: bool = Field(True, description="Table II switch: sample iSDF rays off surfels, points on surfels")
     surfel_loss: bool = Field(True, description="Table II switch: the surfel loss on surfel points")
+    submaps: bool = Field(False, description="one network per submap (protocol 1.3: map/submaps/<id> and map/index, "
+                          "only what changed each period); false = one network for the whole map (map/weights)")
+    submap: SubmapConfig = Field(default_factory=SubmapConfig, description="submap cells and step sharing")
     queue_max: int = Field(16, ge=1, description="keyframes waiting to be trained on; the oldest is dropped beyond")
     snapshot_period_s: float = Field(1.0, gt=0, description="how often weights (and surfels) are published")
     checkpoint_dir: Path | None = Field(None, description="where the map is checkpointed and resumed from")

@@ -4,8 +4,10 @@
   rejected with a log line and counted, and the map is untouched. Accepted keyframes
   wait in a bounded queue; when the mapper trains slower than keyframes come, the
   oldest waiting one is dropped, logged and counted, so memory stays bounded.
-* ``map/weights`` and ``map/surfels``: published every ``snapshot_period_s`` while
-  training, and answered on ``get`` with the latest (late joiners).
+* The map, published every ``snapshot_period_s`` while training and answered on ``get``
+  with the latest (late joiners): with submaps (default, protocol 1.3) the submaps trained
+  since their last publication on ``map/submaps/<id>``, the index of all submaps on
+  ``map/index`` and ``map/surfels``; with one network, ``map/weights`` and ``map/surfels``.
 * ``keyframes/ack`` (protocol 1.2): once a keyframe is in the map (and, with a checkpoint
   directory, in the journal on disk), or rejected for good, the mapper says so; front ends
   resend what is not acknowledged. Keyframes are deduplicated by (sensor, frame_id), also
@@ -31,10 +33,12 @@ import uuid
 from pathlib import Path
 
 import torch
+import zenoh
 
 from aisdf import keys, protocol, transport
 from aisdf.config import add_common_args, config_from_args, service_setup
 from aisdf.pipeline import MappingPipeline
+from aisdf.submaps.pipeline import SubmapPipeline, restore_pipeline
 
 from .config import MapperConfig
 from .journal import Incarnation, KeyframeJournal
@@ -47,10 +51,14 @@ INCARNATION_NAME = "mapper-incarnation.json"
 
 
 class MapperNode:
-    def __init__(self, cfg: MapperConfig, session, pipeline: MappingPipeline | None = None):
+    def __init__(self, cfg: MapperConfig, session, pipeline: MappingPipeline | SubmapPipeline | None = None):
         self.cfg = cfg
         self.session = session
         self.ns = cfg.namespace
+        if pipeline is None and cfg.submaps:
+            pipeline = SubmapPipeline.from_settings(cfg.preset, cfg.training, atlanta=cfg.atlanta,
+                                                    surfel_mask=cfg.surfel_mask, surfel_loss=cfg.surfel_loss,
+                                                    submaps=cfg.submap)
         self.pipeline = pipeline or MappingPipeline.from_settings(
             cfg.preset, cfg.training, atlanta=cfg.atlanta, surfel_mask=cfg.surfel_mask, surfel_loss=cfg.surfel_loss)
         self.pending: collections.deque = collections.deque()
@@ -63,8 +71,8 @@ class MapperNode:
         d = Path(cfg.checkpoint_dir) if cfg.checkpoint_dir else None
         self.journal = KeyframeJournal(d / JOURNAL_NAME) if d else None
         self.incarnation = Incarnation(d / INCARNATION_NAME) if d else None
-        self._latest_weights: bytes | None = None
-        self._latest_surfels: bytes | None = None
+        self._latest: dict[str, bytes] = {}  # key under the namespace -> newest payload published there
+        self._published_all = False
         self._stop = threading.Event()
         self._decls: list = []
         self._thread = threading.Thread(target=self._train_loop, name="train", daemon=True)
@@ -81,13 +89,13 @@ class MapperNode:
         last_epoch = 0
         if path is not None and path.exists():
             ck = torch.load(path, map_location="cpu", weights_only=False)
-            self.pipeline = MappingPipeline.restore(ck["pipeline"])
+            self.pipeline = restore_pipeline(ck["pipeline"])
             self.version = int(ck["version"])
             last_epoch = int(ck.get("epoch", 0))
             if "seen" in ck:
                 self.seen = {(str(s), int(i)) for s, i in ck["seen"]}
             else:
-                self._seen_ids = {int(f.frame_id) for f in self.pipeline.trainer.keyframes}
+                self._seen_ids = {int(f.frame_id) for f in self.pipeline.trainer.keyframes}  # single network only
             log.info("resumed from %s: version %d, %d steps, %d keyframes", path, self.version, self.pipeline.steps,
                      self.pipeline.n_keyframes)
         if self.incarnation is not None:
@@ -212,15 +220,13 @@ class MapperNode:
         self.version += 1
         if self.incarnation is not None:  # before anyone can see this version
             self.incarnation.save(self.epoch, self.version)
-        snap = self.pipeline.weight_snapshot(self.version)
-        snap.epoch = self.epoch
-        self._latest_weights = protocol.pack(snap.to_msg())
-        self.session.put(keys.key(self.ns, keys.MAP_WEIGHTS), self._latest_weights, encoding=transport.ENCODING)
-        smap = self.pipeline.surfel_map(self.version)
-        if smap is not None:
-            smap.epoch = self.epoch
-            self._latest_surfels = protocol.pack(smap.to_msg())
-            self.session.put(keys.key(self.ns, keys.MAP_SURFELS), self._latest_surfels, encoding=transport.ENCODING)
+        # the first publication of an incarnation sends everything (a resumed map, a new epoch)
+        msgs = self.pipeline.map_messages(self.version, changed_only=self._published_all, epoch=self.epoch)
+        self._published_all = True
+        for name, data in msgs:
+            self._latest[name] = data
+            self.session.put(keys.key(self.ns, name), data, encoding=transport.ENCODING)
+        self.counts["published_bytes"] = self.counts.get("published_bytes", 0) + sum(len(d) for _, d in msgs)
 
     def _train_loop(self) -> None:
         last_pub = last_ckpt = time.monotonic()
@@ -252,9 +258,9 @@ class MapperNode:
                 "pending": len(self.pending), **self.counts,
                 "stats": self.pipeline.stats()}
 
-    def _latest(self, name: str):
+    def _latest_of(self, name: str):
         def on_query(q):
-            data = self._latest_weights if name == keys.MAP_WEIGHTS else self._latest_surfels
+            data = self._latest.get(name)
             if data is None:
                 q.reply_err(protocol.pack(protocol.error_message("no_map", f"no {name} published yet")),
                             encoding=transport.ENCODING)
@@ -263,13 +269,30 @@ class MapperNode:
 
         return on_query
 
+    def _on_submaps_query(self, q) -> None:
+        """``get <ns>/map/submaps/**`` (or one id): the newest snapshot of each, on its own key."""
+        prefix = keys.MAP_SUBMAPS + "/"
+        n = 0
+        for name, data in list(self._latest.items()):
+            if not name.startswith(prefix):
+                continue
+            k = zenoh.KeyExpr(keys.key(self.ns, name))
+            if q.key_expr.intersects(k):
+                q.reply(k, data, encoding=transport.ENCODING)
+                n += 1
+        if n == 0:
+            q.reply_err(protocol.pack(protocol.error_message("no_map", "no submap published yet")),
+                        encoding=transport.ENCODING)
+
     def start(self) -> None:
         s = self.session
         self._decls = [
             s.declare_subscriber(keys.key(self.ns, keys.KEYFRAMES),
                                  lambda sample: self.on_keyframe(transport.payload_bytes(sample.payload))),
-            s.declare_queryable(keys.key(self.ns, keys.MAP_WEIGHTS), self._latest(keys.MAP_WEIGHTS)),
-            s.declare_queryable(keys.key(self.ns, keys.MAP_SURFELS), self._latest(keys.MAP_SURFELS)),
+            s.declare_queryable(keys.key(self.ns, keys.MAP_WEIGHTS), self._latest_of(keys.MAP_WEIGHTS)),
+            s.declare_queryable(keys.key(self.ns, keys.MAP_SURFELS), self._latest_of(keys.MAP_SURFELS)),
+            s.declare_queryable(keys.key(self.ns, keys.MAP_INDEX), self._latest_of(keys.MAP_INDEX)),
+            s.declare_queryable(keys.key(self.ns, keys.MAP_SUBMAPS) + "/**", self._on_submaps_query),
             transport.serve(s, keys.key(self.ns, INFO_KEY), lambda _req: self.info(), allow_empty=True),
             s.liveliness().declare_token(keys.status_key(self.ns, "mapper", uuid.uuid4().hex[:8])),
         ]
@@ -322,15 +345,19 @@ def cli(argv: list[str] | None = None) -> None:
     p = argparse.ArgumentParser(
         prog="aisdf-mapper",
         description="AiSDF mapper: subscribes to <namespace>/keyframes, trains the neural SDF continually with "
-        "Atlanta-aware sampling, publishes <namespace>/map/weights and <namespace>/map/surfels.",
+        "Atlanta-aware sampling (one network per submap by default), publishes <namespace>/map/submaps/<id>, "
+        "<namespace>/map/index and <namespace>/map/surfels (or <namespace>/map/weights with --single-network).",
     )
     add_common_args(p)
     p.add_argument("--preset", choices=["auto", "paper", "cpu"], help="training preset (default auto)")
     p.add_argument("--no-atlanta", action="store_true", help="plain iSDF: no Atlanta frame, surfels or surfel map")
     p.add_argument("--checkpoint-dir", help="checkpoint the map here and resume from it")
+    p.add_argument("--submaps", action=argparse.BooleanOptionalAction, default=None,
+                   help="one network per submap (protocol 1.3), or --no-submaps: one network (map/weights)")
     args = p.parse_args(argv)
     cfg = config_from_args(MapperConfig, args, {"preset": args.preset, "checkpoint_dir": args.checkpoint_dir,
-                                                "atlanta": False if args.no_atlanta else None})
+                                                "atlanta": False if args.no_atlanta else None,
+                                                "submaps": args.submaps})
     stop = service_setup(cfg, "mapper")
     main(cfg, stop)
 

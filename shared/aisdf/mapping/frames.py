@@ -81,6 +81,14 @@ class Keyframe:
     depth: np.ndarray
     normals_W: np.ndarray
     loss: float | None = None
+    # Submaps: rays only from these pixels (those whose ray meets the submap), and samples
+    # only where ``region(points, grow) -> bool`` (the submap's box grown by ``grow``).
+    pixel_mask: np.ndarray | None = None
+    region: object = None
+
+    def view(self, pixel_mask: np.ndarray | None, region) -> "Keyframe":
+        """The same keyframe (arrays shared, not copied) for a submap's store."""
+        return Keyframe(self.frame, self.depth, self.normals_W, None, pixel_mask, region)
 
     @classmethod
     def make(cls, frame: Frame, max_depth: float) -> "Keyframe":
@@ -108,6 +116,17 @@ class KeyframeStore:
     def add(self, frame: Frame) -> list[int]:
         """Store a frame; returns the frame_ids dropped to respect ``max_keyframes``."""
         self.keyframes.append(Keyframe.make(frame, self.max_depth))
+        dropped = []
+        while len(self.keyframes) > self.max_keyframes:
+            old = self.keyframes[:-2]
+            i = int(np.argmin([self._loss(k) for k in old]))
+            dropped.append(self.keyframes.pop(i).frame.frame_id)
+            self.dropped += 1
+        return dropped
+
+    def add_prepared(self, kf: Keyframe) -> list[int]:
+        """Store an already prepared keyframe (a submap's view); same memory bound as ``add``."""
+        self.keyframes.append(kf)
         dropped = []
         while len(self.keyframes) > self.max_keyframes:
             old = self.keyframes[:-2]

@@ -89,6 +89,8 @@ def sample_frame(kf: Keyframe, slot: int, cfg: TrainingConfig, rng: np.random.Ge
     frame = kf.frame
     surfels = frame.surfels if (cfg.uses_surfels and frame.surfels is not None) else None
     valid = kf.depth > 0
+    if kf.pixel_mask is not None:
+        valid = valid & kf.pixel_mask
     n_rays = cfg.n_rays
     if cfg.surfel_mask and surfels is not None:
         if frame.surfel_mask is not None:
@@ -120,7 +122,15 @@ def sample_frame(kf: Keyframe, slot: int, cfg: TrainingConfig, rng: np.random.Ge
             sp.astype(np.float32), nan, nan.copy(), np.full(len(sp), SURFEL, np.int8),
             surfels.normal[si].astype(np.float32), np.full(len(sp), slot, np.int64),
         ))
+    if kf.region is not None:  # a submap's keyframe: its samples in the submap's box; surface
+        # (reference) points a truncation distance further, so the bounds near the box's faces hold
+        parts = [_within(p, kf.region, cfg.trunc_distance) for p in parts]
     return Batch.concat(parts)
+
+
+def _within(b: Batch, region, margin: float) -> Batch:
+    keep = np.where(b.kind == FREE, region(b.points_W, 0.0), region(b.points_W, margin))
+    return Batch(**{k: getattr(b, k)[keep] for k in Batch.__dataclass_fields__})
 
 
 def sample_batch(keyframes: list[Keyframe], cfg: TrainingConfig, rng: np.random.Generator) -> Batch:

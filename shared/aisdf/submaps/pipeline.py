@@ -1,0 +1,478 @@
+"""The mapper's algorithm for whole buildings: one AiSDF network per submap.
+
+Space is cut by a :class:`~aisdf.submaps.grid.SubmapGrid` (cells a few metres across,
+aligned with the Atlanta frame, with overlap). A submap is an AiSDF trainer (the paper's
+network, preset and losses) whose positional encoding is centred on its cell; it is
+created when keyframes first observe its space, keeps its own keyframes (views of the
+shared keyframes: arrays are not copied) and is trained only on them, on the rays that
+meet its box and on the samples inside it. A step trains one submap: one the newest
+keyframes see (shares by how much of them each sees); out of view submaps are not trained
+(they cannot forget), except that while no new keyframe arrives for ``idle_steps`` steps,
+or on every ``refine_every``-th step, the submap with the fewest steps per keyframe gets a
+refinement step on its own keyframes. The cost of a step does not grow with the building.
+
+The Atlanta frame, surfels and the global surfel map are shared (one ``Structure``). The
+same interface as :class:`aisdf.pipeline.MappingPipeline`: ``add_keyframe``, ``step``,
+``sdf``, ``map_messages`` (only the submaps that changed, ``map/index`` and the surfel map),
+``memory``, ``checkpoint``/``restore``.
+
+Ownership: a submap is a unit of work keyed by its id. Several mapper processes could each
+own a share of the ids (a hash of the id, or a list) and subscribe to the same keyframes;
+each would publish only its own ``map/submaps/<id>``. One process owns all of them here.
+"""
+
+from __future__ import annotations
+
+import time
+from collections import defaultdict
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+import torch
+from pydantic import Field
+
+from .. import geometry, keys, network, protocol
+from ..config import Model
+from ..mapping.frames import Frame, Keyframe
+from ..mapping.presets import training_config
+from ..mapping.trainer import Trainer, _optimizer_from_numpy, _optimizer_to_numpy
+from ..observed import ObservedSpace
+from ..pipeline import MIN_VALID_PIXELS, frame_from_keyframe
+from .field import blend
+from .grid import SubmapGrid, cell_id, parse_cell_id
+
+CHECKPOINT_FORMAT = "aisdf-submaps-checkpoint"
+CHECKPOINT_VERSION = 1
+Cell = tuple[int, int, int]
+
+
+class SubmapConfig(Model):
+    """How space is cut into submaps and how steps are shared among them."""
+
+    cell_m: float = Field(4.0, gt=0, description="horizontal size of a submap's cell (m)")
+    cell_height_m: float = Field(6.0, gt=0, description="vertical size of a cell (m): one storey fits one layer")
+    overlap_m: float = Field(0.5, gt=0, description="each submap reaches this far into its neighbours; answers "
+                          "blend over twice this width")
+    min_share: float = Field(0.03, ge=0, le=1, description="a keyframe joins a submap when at least this share of "
+                          "its sampled ray points fall in the submap's box")
+    min_points: int = Field(40, ge=1, description="... and at least this many of them")
+    active_keyframes: int = Field(2, ge=1, description="submaps the newest this many keyframes see are trained")
+    refine_every: int = Field(8, ge=0, description="every n-th step refines the least trained submap (0 = never)")
+    idle_steps: int = Field(30, ge=1, description="after this many steps without a new keyframe, every step "
+                         "refines the least trained submap")
+    grid_wait_keyframes: int = Field(3, ge=1, description="keyframes to wait for an Atlanta frame before the grid "
+                                  "falls back to the world's axes")
+
+
+@dataclass
+class Submap:
+    cell: Cell
+    trainer: Trainer
+    published_step: int = -1  # trainer steps at the last publication
+    version: int = 0  # map version of its newest published snapshot
+    observed_key: tuple = ()  # observed-space state its cached message was built for
+    observed_msg: dict | None = None
+    seen_by: list = field(default_factory=list)  # keyframe keys, arrival order
+
+    @property
+    def id(self) -> str:
+        return cell_id(self.cell)
+
+
+class SubmapPipeline:
+    def __init__(self, cfg, atlanta: bool = True, submaps: SubmapConfig | None = None,
+                 atlanta_state: dict | None = None):
+        self.cfg = cfg
+        self.sub_cfg = submaps or SubmapConfig()
+        self.atlanta_on = atlanta
+        self.structure = None
+        if atlanta:
+            from ..structure import Structure
+
+            self.structure = Structure(seed=cfg.seed)
+            if atlanta_state:
+                self.structure.load_state_dict(atlanta_state)
+        if cfg.torch_threads:
+            torch.set_num_threads(cfg.torch_threads)
+        self.grid: SubmapGrid | None = None
+        self.submaps: dict[Cell, Submap] = {}
+        self.frames: dict[tuple[str, int], Keyframe] = {}  # every keyframe once, prepared
+        self._waiting: list[Keyframe] = []  # before the grid exists
+        self._recent: list[dict[Cell, int]] = []  # cells the newest keyframes see, with point counts
+        self._credit: dict[Cell, float] = defaultdict(float)
+        self.observed = ObservedSpace()
+        self.rng = np.random.default_rng(cfg.seed)
+        self._steps = 0
+        self._since_keyframe = 0
+        self._timings: dict[str, list[float]] = defaultdict(list)
+        self._pending_timings: dict[str, float] = {}
+        self._bounds: np.ndarray | None = None
+
+    @classmethod
+    def from_settings(cls, preset: str = "auto", training: dict[str, Any] | None = None, atlanta: bool = True,
+                      surfel_mask: bool = True, surfel_loss: bool = True,
+                      submaps: SubmapConfig | dict | None = None) -> "SubmapPipeline":
+        overrides = dict(training or {})
+        overrides.setdefault("surfel_mask", bool(atlanta and surfel_mask))
+        overrides.setdefault("surfel_loss", bool(atlanta and surfel_loss))
+        sub = submaps if isinstance(submaps, SubmapConfig) else SubmapConfig.model_validate(submaps or {})
+        return cls(training_config(preset, **overrides), atlanta=atlanta, submaps=sub)
+
+    def describe(self) -> str:
+        c, s = self.cfg, self.sub_cfg
+        return (f"submaps of {s.cell_m:g} x {s.cell_m:g} x {s.cell_height_m:g} m (overlap {s.overlap_m:g} m), "
+                f"preset {c.preset}, width {c.network.width}, atlanta {'on' if self.atlanta_on else 'off'}")
+
+    # ------------------------------------------------------------------ state
+    @property
+    def steps(self) -> int:
+        return self._steps
+
+    @property
+    def n_keyframes(self) -> int:
+        return len(self.frames)
+
+    @property
+    def keyframes(self) -> list[Frame]:
+        return [k.frame for k in self.frames.values()]
+
+    # ------------------------------------------------------------------ keyframes
+    def add_keyframe(self, kf: protocol.Keyframe | Frame) -> None:
+        """Add a keyframe. Raises ValueError (and changes nothing) for one that cannot be
+        used: a duplicate (sensor, frame_id), too few valid depth pixels."""
+        frame = frame_from_keyframe(kf) if isinstance(kf, protocol.Keyframe) else kf
+        depth = frame.depth
+        valid = np.isfinite(depth) & (depth > 0) & (depth <= self.cfg.max_depth)
+        if int(valid.sum()) < MIN_VALID_PIXELS:
+            raise ValueError(f"only {int(valid.sum())} valid depth pixels (need {MIN_VALID_PIXELS})")
+        if frame.key in self.frames:
+            raise ValueError(f"keyframe {frame.sensor}/{frame.frame_id} is already in the map")
+        if self.structure is not None:
+            t = self.structure.process(frame)
+            for k, v in t.items():
+                self._pending_timings[k] = self._pending_timings.get(k, 0.0) + v
+                self._timings[k].append(v)
+        t0 = time.perf_counter()
+        prepared = Keyframe.make(frame, self.cfg.max_depth)
+        self.frames[frame.key] = prepared
+        self._grow_bounds(frame)
+        self.observed.add(depth, frame.K, frame.T_WC, self.cfg.max_depth)
+        if self.grid is None:
+            self._waiting.append(prepared)
+            self._maybe_make_grid(frame)
+        else:
+            self._assign(prepared)
+        self._since_keyframe = 0
+        self._timings["assign"].append(1e3 * (time.perf_counter() - t0))
+
+    def _maybe_make_grid(self, frame: Frame) -> None:
+        s = self.sub_cfg
+        af = self.structure.atlanta_frame() if self.structure is not None else None
+        if af is None and self.structure is not None and len(self._waiting) < s.grid_wait_keyframes:
+            return  # wait a little for the vertical
+        first = self._waiting[0].frame
+        vertical = None if af is None else af.vertical
+        reference = None if af is None else af.reference
+        self.grid = SubmapGrid.around(first.T_WC[:3, 3], vertical, reference, s.cell_m, s.cell_height_m, s.overlap_m)
+        waiting, self._waiting = self._waiting, []
+        for kf in waiting:
+            self._assign(kf)
+
+    def _ray_points(self, kf: Keyframe, stride: int = 4) -> tuple[np.ndarray, np.ndarray]:
+        """World points along a grid of the keyframe's rays (4 per ray, the last on the
+        surface): what the keyframe observes. Also the camera centre."""
+        d = kf.depth[::stride, ::stride]
+        v, u = np.nonzero(d > 0)
+        K, T = kf.frame.K, np.asarray(kf.frame.T_WC, np.float64)
+        D = d[v, u].astype(np.float64)
+        uu, vv = u * stride, v * stride
+        dirs = np.stack([(uu - K[0, 2]) / K[0, 0], (vv - K[1, 2]) / K[1, 1], np.ones(len(D))], axis=-1)
+        fr = np.array([0.25, 0.5, 0.75, 1.0])
+        pts_C = dirs[:, None, :] * (D[:, None] * fr)[..., None]
+        return geometry.transform(T, pts_C.reshape(-1, 3)), T[:3, 3]
+
+    def _assign(self, kf: Keyframe) -> None:
+        """Give the keyframe to every submap it observes enough of (creating them)."""
+        s = self.sub_cfg
+        pts, _ = self._ray_points(kf)
+        counts = self.grid.cells_touching(pts)
+        need = max(s.min_points, s.min_share * len(pts))
+        seen = {c: n for c, n in counts.items() if n >= need}
+        if not seen and counts:  # a keyframe always lands somewhere: its best cell
+            c = max(counts, key=counts.get)
+            seen = {c: counts[c]}
+        for c in seen:
+            sm = self.submaps.get(c) or self._new_submap(c)
+            sm.trainer.store.add_prepared(kf.view(self._pixel_mask(kf, c), self._region(c)))
+            sm.seen_by.append(kf.frame.key)
+        self._recent = ([seen] + self._recent)[: s.active_keyframes]
+
+    def _new_submap(self, c: Cell) -> Submap:
+        net_cfg = self.cfg.network.model_copy(update={"offset": [float(x) for x in self.grid.centre_W(c)]})
+        seed = int(self.cfg.seed * 1_000_003 + (hash(c) % 1_000_003))
+        cfg = self.cfg.model_copy(update={"network": net_cfg, "seed": seed})
+        sm = Submap(c, Trainer(cfg))
+        self.submaps[c] = sm
+        return sm
+
+    def _region(self, c: Cell):
+        grid, o = self.grid, self.grid.overlap_m
+
+        def region(points: np.ndarray, grow: float) -> np.ndarray:
+            return grid.inside(c, points, grow=o + grow)
+
+        return region
+
+    def _pixel_mask(self, kf: Keyframe, c: Cell) -> np.ndarray:
+        """Pixels whose sampled segment [min_depth, D + margin] meets the submap's box grown
+        by a truncation distance (slab test in grid coordinates)."""
+        cfg, grid = self.cfg, self.grid
+        H, W = kf.depth.shape
+        v, u = np.mgrid[0:H, 0:W]
+        K, T = kf.frame.K, np.asarray(kf.frame.T_WC, np.float64)
+        dirs_C = np.stack([(u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1], np.ones((H, W))], -1).reshape(-1, 3)
+        d_G = dirs_C @ (grid.R_WG.T @ T[:3, :3]).T  # ray direction per unit camera z, grid axes
+        o_G = grid.to_grid(T[:3, 3][None])[0]
+        lo, hi = grid.core_box(c)
+        grow = grid.overlap_m + cfg.trunc_distance
+        lo, hi = lo - grow, hi + grow
+        with np.errstate(divide="ignore", invalid="ignore"):
+            t1 = (lo - o_G) / d_G
+            t2 = (hi - o_G) / d_G
+        tmin = np.where(np.isnan(t1), -np.inf, np.minimum(t1, t2))
+        tmax = np.where(np.isnan(t1), np.inf, np.maximum(t1, t2))
+        par = d_G == 0  # parallel to a slab: inside it or never
+        inside_slab = (o_G >= lo) & (o_G <= hi)
+        tmin = np.where(par, np.where(inside_slab, -np.inf, np.inf), tmin)
+        tmax = np.where(par, np.where(inside_slab, np.inf, -np.inf), tmax)
+        enter, leave = tmin.max(1), tmax.min(1)
+        D = kf.depth.reshape(-1).astype(np.float64)
+        near, far = cfg.min_depth, D + cfg.depth_margin
+        return ((enter <= leave) & (leave >= near) & (enter <= far) & (D > 0)).reshape(H, W)
+
+    def _grow_bounds(self, frame: Frame) -> None:
+        d = frame.depth[::4, ::4]
+        K = frame.K.copy()
+        K[:2] /= 4
+        pts = geometry.backproject(d, K).reshape(-1, 3)
+        pts = geometry.transform(frame.T_WC, pts[np.isfinite(pts[:, 0])])
+        pts = np.concatenate([pts, frame.T_WC[None, :3, 3]])
+        lo, hi = pts.min(0), pts.max(0)
+        self._bounds = np.stack([lo, hi]) if self._bounds is None else np.stack(
+            [np.minimum(self._bounds[0], lo), np.maximum(self._bounds[1], hi)])
+
+    # ------------------------------------------------------------------ training
+    def _pick(self) -> Submap:
+        s = self.sub_cfg
+        idle = self._since_keyframe >= s.idle_steps
+        refine = idle or (s.refine_every and (self._steps + 1) % s.refine_every == 0)
+        if refine and len(self.submaps) > 1 or not self._recent:
+            def need(sm: Submap) -> float:
+                return sm.trainer.steps / max(1, sm.trainer.n_keyframes)
+
+            active = set(self._recent[0]) if (self._recent and not idle) else set()
+            pool = [sm for c, sm in self.submaps.items() if c not in active] or list(self.submaps.values())
+            return min(pool, key=lambda sm: (need(sm), sm.id))
+        shares: dict[Cell, float] = defaultdict(float)
+        for seen in self._recent:
+            tot = sum(seen.values())
+            for c, n in seen.items():
+                shares[c] += n / tot
+        for c, v in shares.items():  # deficit round robin: steps in proportion to what is seen
+            self._credit[c] += v / len(self._recent)
+        for c in list(self._credit):
+            if c not in shares:
+                del self._credit[c]
+        c = max(self._credit, key=lambda k: (self._credit[k], cell_id(k)))
+        self._credit[c] -= 1.0
+        return self.submaps[c]
+
+    def step(self) -> dict:
+        if not self.submaps:
+            raise RuntimeError("step() needs at least one keyframe (and a grid)")
+        extra, self._pending_timings = self._pending_timings, {}
+        t = time.perf_counter()
+        sm = self._pick()
+        info = sm.trainer.step(extra_timings_ms=extra)
+        info["submap"] = sm.id
+        self._steps += 1
+        self._since_keyframe += 1
+        for k, v in info.get("timings_ms", {}).items():
+            self._timings[k].append(v)
+        self._timings["step_wall"].append(1e3 * (time.perf_counter() - t))
+        for v in self._timings.values():
+            del v[:-200]
+        return info
+
+    def stats(self) -> dict:
+        out = {k: round(float(np.mean(v)), 3) for k, v in self._timings.items() if v}
+        out["submaps"] = len(self.submaps)
+        out["dropped_keyframes"] = sum(sm.trainer.dropped_keyframes for sm in self.submaps.values())
+        if self.structure is not None:
+            out.update(self.structure.stats())
+        return out
+
+    # ------------------------------------------------------------------ answers
+    def _evaluators(self):
+        def make(tr: Trainer):
+            def fn(q: np.ndarray, grad: bool):
+                if grad:
+                    return tr.sdf_grad(q)
+                return tr.sdf(q), None
+
+            return fn
+
+        return {c: make(sm.trainer) for c, sm in self.submaps.items()}
+
+    def sdf(self, points: np.ndarray) -> np.ndarray:
+        p = np.asarray(points, np.float64).reshape(-1, 3)
+        if not self.submaps:
+            return np.full(len(p), np.nan, np.float32)
+        return blend(self.grid, self._evaluators(), p, grad=False)[0]
+
+    def sdf_grad(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        f, g, _ = blend(self.grid, self._evaluators(), np.asarray(points, np.float64).reshape(-1, 3), grad=True)
+        return f, g
+
+    # ------------------------------------------------------------------ outputs
+    def _observed_msg(self, sm: Submap) -> dict | None:
+        key = (len(self.observed),)
+        if sm.observed_key != key:
+            c, grow = sm.cell, self.grid.overlap_m + self.observed.voxel
+            g = self.observed.grid(keep=lambda centres: self.grid.inside(c, centres, grow=grow))
+            sm.observed_msg, sm.observed_key = (None if g is None else g.to_msg()), key
+        return sm.observed_msg
+
+    def submap_snapshot(self, sm: Submap, version: int, epoch: int = 0) -> protocol.WeightSnapshot:
+        model = dict(sm.trainer.model_spec())
+        c = sm.cell
+        model["bounds"] = [self.grid.corners_W(c, self.grid.overlap_m).min(0).tolist(),
+                           self.grid.corners_W(c, self.grid.overlap_m).max(0).tolist()]
+        return protocol.WeightSnapshot(version, sm.trainer.steps, time.time(), model, sm.trainer.state_numpy(),
+                                       epoch, self._observed_msg(sm), {"id": sm.id, "grid": self.grid.to_msg()})
+
+    def index(self, version: int, epoch: int = 0) -> protocol.SubmapIndex:
+        return protocol.SubmapIndex(version, time.time(), self.grid.to_msg(),
+                                    {sm.id: {"version": sm.version, "step": sm.trainer.steps}
+                                     for sm in self.submaps.values()}, epoch)
+
+    def map_messages(self, version: int, changed_only: bool = True, epoch: int = 0) -> list[tuple[str, bytes]]:
+        """What the mapper publishes for map ``version``: every submap trained since its last
+        publication (all with ``changed_only`` False) on ``map/submaps/<id>``, the index on
+        ``map/index`` and the global surfel map."""
+        out = []
+        if self.grid is None:
+            return out
+        for sm in self.submaps.values():
+            if changed_only and sm.trainer.steps == sm.published_step:
+                continue
+            sm.published_step, sm.version = sm.trainer.steps, version
+            out.append((f"{keys.MAP_SUBMAPS}/{sm.id}", protocol.pack(self.submap_snapshot(sm, version, epoch).to_msg())))
+        out.append((keys.MAP_INDEX, protocol.pack(self.index(version, epoch).to_msg())))
+        smap = self.surfel_map(version)
+        if smap is not None:
+            smap.epoch = epoch
+            out.append((keys.MAP_SURFELS, protocol.pack(smap.to_msg())))
+        return out
+
+    def surfels(self):
+        return None if self.structure is None else self.structure.global_surfels()
+
+    def surfel_map(self, version: int) -> protocol.SurfelMap | None:
+        if self.structure is None:
+            return None
+        frame = self.structure.atlanta_frame()
+        if frame is None:
+            return None
+        s = self.structure.global_surfels()
+        return protocol.SurfelMap(version, time.time(), frame.vertical, frame.horizontal, s.to_protocol_dict())
+
+    def memory(self) -> dict[str, int]:
+        kf = sum(k.frame.nbytes() + k.depth.nbytes + k.normals_W.nbytes for k in self.frames.values())
+        masks = sum(v.pixel_mask.nbytes for sm in self.submaps.values() for v in sm.trainer.store.keyframes
+                    if v.pixel_mask is not None)
+        n_par = sum(p.numel() for sm in self.submaps.values() for p in sm.trainer.net.parameters())
+        return {"keyframes": int(kf + masks), "model": int(3 * 4 * n_par), "observed": int(self.observed.nbytes())}
+
+    # ------------------------------------------------------------------ checkpoints
+    def checkpoint(self) -> dict:
+        """Everything to resume: keyframes once, each submap's weights, AdamW state, its
+        keyframe keys and loss estimates, counters and generators."""
+        subs = []
+        for sm in self.submaps.values():
+            tr = sm.trainer
+            subs.append({
+                "cell": list(sm.cell), "config": tr.cfg.model_dump(mode="json"), "state": tr.state_numpy(),
+                "optimizer": _optimizer_to_numpy(tr.optimizer.state_dict()), "steps": tr.steps,
+                "dropped": tr.store.dropped, "rng": tr.rng.bit_generator.state, "published_step": sm.published_step,
+                "version": sm.version,
+                "keyframes": [[k.frame.sensor, int(k.frame.frame_id), k.loss] for k in tr.store.keyframes],
+            })
+        return {
+            "format": CHECKPOINT_FORMAT, "version": CHECKPOINT_VERSION, "config": self.cfg.model_dump(mode="json"),
+            "submap_config": self.sub_cfg.model_dump(mode="json"), "atlanta": self.atlanta_on,
+            "structure": None if self.structure is None else self.structure.state_dict(),
+            "grid": None if self.grid is None else self.grid.to_msg(),
+            "frames": [k.frame.to_dict() for k in self.frames.values()],
+            "waiting": [list(k.frame.key) for k in self._waiting],
+            "recent": [[[list(c), n] for c, n in seen.items()] for seen in self._recent],
+            "credit": [[list(c), v] for c, v in self._credit.items()], "since_keyframe": self._since_keyframe,
+            "submaps": subs, "steps": self._steps, "rng": self.rng.bit_generator.state,
+            "bounds": None if self._bounds is None else self._bounds.tolist(),
+            "observed": self.observed.state_dict(),
+        }
+
+    @classmethod
+    def restore(cls, d: dict) -> "SubmapPipeline":
+        if d.get("format") != CHECKPOINT_FORMAT:
+            raise ValueError(f"not a submap checkpoint (format {d.get('format')!r})")
+        if int(d.get("version", 0)) > CHECKPOINT_VERSION:
+            raise ValueError(f"checkpoint version {d['version']} is newer than this build's {CHECKPOINT_VERSION}")
+        from ..mapping.config import TrainingConfig
+
+        p = cls(TrainingConfig.model_validate(d["config"]), atlanta=d["atlanta"],
+                submaps=SubmapConfig.model_validate(d["submap_config"]), atlanta_state=d.get("structure"))
+        for fd in d["frames"]:
+            f = Frame.from_dict(fd)
+            p.frames[f.key] = Keyframe.make(f, p.cfg.max_depth)
+        if d.get("grid") is not None:
+            p.grid = SubmapGrid.from_msg(d["grid"])
+        p._waiting = [p.frames[(s, int(i))] for s, i in d.get("waiting", [])]
+        p._recent = [{tuple(c): int(n) for c, n in seen} for seen in d.get("recent", [])]
+        for sd in d["submaps"]:
+            c = tuple(int(x) for x in sd["cell"])
+            tr = Trainer(TrainingConfig.model_validate(sd["config"]))
+            network.load_numpy_state(tr.net, sd["state"])
+            tr.optimizer.load_state_dict(_optimizer_from_numpy(sd["optimizer"]))
+            tr._steps = int(sd["steps"])
+            tr.rng.bit_generator.state = sd["rng"]
+            sm = Submap(c, tr, int(sd["published_step"]), int(sd["version"]))
+            p.submaps[c] = sm
+            for sensor, fid, loss in sd["keyframes"]:
+                kf = p.frames[(sensor, int(fid))]
+                tr.store.add_prepared(kf.view(p._pixel_mask(kf, c), p._region(c)))
+                tr.store.keyframes[-1].loss = None if loss is None else float(loss)
+                sm.seen_by.append(kf.frame.key)
+            tr.store.dropped = int(sd["dropped"])
+        p._steps = int(d["steps"])
+        p._since_keyframe = int(d.get("since_keyframe", 0))
+        for c, v in d.get("credit", []):
+            p._credit[tuple(int(x) for x in c)] = float(v)
+        p.rng.bit_generator.state = d["rng"]
+        if d.get("bounds") is not None:
+            p._bounds = np.asarray(d["bounds"])
+        p.observed.load_state_dict(d["observed"])
+        return p
+
+
+def restore_pipeline(d: dict):
+    """A mapper checkpoint's pipeline, single network or submaps."""
+    if d.get("format") == CHECKPOINT_FORMAT:
+        return SubmapPipeline.restore(d)
+    from ..pipeline import MappingPipeline
+
+    return MappingPipeline.restore(d)
+
+
+__all__ = ["SubmapConfig", "SubmapPipeline", "parse_cell_id", "restore_pipeline"]
