@@ -344,6 +344,8 @@ def write_bag(path, source, fmt: str = "mcap", *, encoding: str = "16UC1", T_map
             out.put(t_ns + 1_000_000, "/tf", "tf2_msgs/msg/TFMessage",
                     msgs.tf([("odom", "base_link", t_ns, T_odom_base)]))
             wb.tf_stamps_ns.append(t_ns)
+            if odom_topic:
+                out.put(t_ns + 1_500_000, "/odom", "nav_msgs/msg/Odometry", msgs.odometry(t_ns, T_odom_base))
         if pending_image is not None:
             out.put(*pending_image)
         depth = np.asarray(f["depth"], np.float32)
