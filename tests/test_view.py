@@ -137,8 +137,10 @@ def test_view_skips_malformed_messages_and_keeps_going(tmp_path):
         wait_for(lambda: viewer_up(s), 60, what="the viewer")
         time.sleep(0.5)  # the viewer's subscriptions reach this session with its token
         good = protocol.SurfelMap(7, 1.0, np.array([0.0, 0.0, 1.0]), np.array([[1.0, 0.0, 0.0]]), {
-            "center": np.array([[0, 0, 0], [1, 0, 1]], np.float32), "normal": np.array([[0, 0, 1], [1, 0, 0]], np.float32),
-            "axis1": np.array([[1, 0, 0], [0, 1, 0]], np.float32), "axis2": np.array([[0, 1, 0], [0, 0, 1]], np.float32),
+            "center": np.array([[0, 0, 0], [1, 0, 1]], np.float32),
+            "normal": np.array([[0, 0, 1], [1, 0, 0]], np.float32),
+            "axis1": np.array([[1, 0, 0], [0, 1, 0]], np.float32),
+            "axis2": np.array([[0, 1, 0], [0, 0, 1]], np.float32),
             "extent": np.array([[1, 2], [0.5, 0.5]], np.float32), "direction": np.array([-1, 0], np.int32),
             "keyframe": np.array([3, 4], np.int64)})
         bad_surfels = [b"", b"\xc1not msgpack", msgpack.packb([1, 2]), msgpack.packb({"v": 99}),

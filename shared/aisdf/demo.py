@@ -2,15 +2,19 @@
 
 Starts frontend, mapper and query as separate processes, shows live progress (frames
 sent, keyframes, training steps, map version, SDF error against the synthetic ground
-truth), runs a small planner example, and writes a mesh, a summary and a rerun
-recording at the end. Ctrl-C stops everything cleanly.
+truth), runs a small planner example, and writes a mesh and a summary at the end. The
+live viewer (``aisdf view --save``, a fourth process; needs the ``aisdf[viewer]`` extra)
+records the run as it goes. Ctrl-C stops everything cleanly.
 """
 
 from __future__ import annotations
 
+import importlib.util
 import json
 import logging
+import os
 import signal
+import subprocess
 import sys
 import threading
 import time
@@ -21,71 +25,50 @@ import numpy as np
 from . import keys, protocol, transport
 from .client import SdfClient
 from .collision import chomp_cost
-from .stack import Stack, wait_for
+from .stack import Stack, endpoint, free_port, wait_for
 
 log = logging.getLogger("aisdf.demo")
 
 
-class NullRecorder:
-    """Records nothing: rerun-sdk (the ``aisdf[viewer]`` extra) is not installed."""
-
-    def keyframe(self, kf) -> None: ...
-
-    def mesh(self, m) -> None: ...
-
-    def surfels(self, s) -> None: ...
-
-    def close(self) -> None: ...
+def rerun_installed() -> bool:
+    return importlib.util.find_spec("rerun") is not None
 
 
-def open_recorder(path: Path):
-    try:
-        return Recorder(path)
-    except ImportError:
-        log.warning("rerun-sdk is not installed (pip install 'aisdf[viewer]'): no recording in %s", path)
-        return NullRecorder()
+def start_viewer(stack: Stack, port: int, path: Path, log_dir: Path, mesh_period_s: float,
+                 mesh_resolution: float) -> subprocess.Popen:
+    """``aisdf view --save path`` as a process on the stack's loopback endpoints (it listens on ``port``,
+    which the frontend connects to, so the viewer sees every keyframe from the first)."""
+    cmd = [sys.executable, "-m", "aisdf.cli", "view", "--save", str(path), "--namespace", stack.namespace,
+           "--no-multicast-scouting", "--listen", endpoint(port), "--mesh-period", str(mesh_period_s),
+           "--mesh-resolution", str(mesh_resolution)]
+    for e in stack.endpoints:
+        cmd += ["--connect", e]
+    log_dir.mkdir(parents=True, exist_ok=True)
+    with open(log_dir / "viewer.log", "w") as out:
+        return subprocess.Popen(cmd, stdout=out, stderr=subprocess.STDOUT, start_new_session=True,
+                                env={**os.environ, "PYTHONUNBUFFERED": "1"})
 
 
-class Recorder:
-    """The rerun recording: keyframes' depth and camera poses, the mesh as it grows."""
+def stop_viewer(p: subprocess.Popen | None, timeout: float = 30.0) -> int | None:
+    """SIGTERM: the viewer records what it has queued, flushes the recording and closes its session."""
+    if p is None:
+        return None
+    if p.poll() is None:
+        p.send_signal(signal.SIGTERM)
+        try:
+            p.wait(timeout)
+        except subprocess.TimeoutExpired:
+            log.warning("the viewer did not stop within %.0f s; killed (the recording may be cut short)", timeout)
+            p.kill()
+            p.wait(5)
+    return p.returncode
 
-    def __init__(self, path: Path):
-        import rerun as rr
 
-        self.rr = rr
-        self.rec = rr.RecordingStream("aisdf_demo")
-        self.rec.save(str(path))
-        self.t0 = time.monotonic()
-        self.n = 0
-
-    def _time(self) -> None:
-        self.rec.set_time("wall", duration=time.monotonic() - self.t0)
-
-    def keyframe(self, kf: protocol.Keyframe) -> None:
-        rr = self.rr
-        self._time()
-        H, W = kf.depth.shape
-        self.rec.log("world/camera", rr.Transform3D(translation=kf.T_WC[:3, 3], mat3x3=kf.T_WC[:3, :3]))
-        self.rec.log("world/camera/image", rr.Pinhole(image_from_camera=kf.K, width=W, height=H))
-        self.rec.log("world/camera/image/depth", rr.DepthImage(kf.depth_m(), meter=1.0))
-        self.rec.log(f"world/keyframes/{kf.frame_id}", rr.Points3D([kf.T_WC[:3, 3]], radii=0.03))
-        self.n += 1
-
-    def mesh(self, m: protocol.MeshReply) -> None:
-        self._time()
-        self.rec.log("world/mesh", self.rr.Mesh3D(vertex_positions=m.vertices, triangle_indices=m.faces))
-
-    def surfels(self, s) -> None:
-        if s is None or len(s) == 0:
-            return
-        self._time()
-        c = s.corners()
-        strips = [np.concatenate([q, q[:1]]) for q in c]
-        self.rec.log("world/surfels", self.rr.LineStrips3D(strips))
-
-    def close(self) -> None:
-        self.rec.flush()
-        self.rec.disconnect() if hasattr(self.rec, "disconnect") else None
+def viewer_up(session, namespace: str) -> bool:
+    for reply in session.liveliness().get(keys.status_key(namespace, "viewer", "*"), timeout=1.0):
+        if reply.ok is not None:
+            return True
+    return False
 
 
 def eval_points_from(seq, n_frames_seen: int, n_points: int, rng) -> np.ndarray:
@@ -107,7 +90,10 @@ def planner_example(client: SdfClient, seq, epsilon: float = 1.0) -> dict:
 
 
 def run(duration: float = 180.0, out: str | Path = "runs/demo", building: str = "office", seed: int = 0,
-        preset: str = "auto", n_eval: int = 20_000, quiet: bool = False) -> dict:
+        preset: str = "auto", n_eval: int = 20_000, quiet: bool = False, mesh_period_s: float = 15.0,
+        mesh_resolution: float = 0.1) -> dict:
+    """The demo. The recording's meshes (``mesh_period_s``, ``mesh_resolution``) cost the query
+    service about what the demo's own meshes did before the viewer (0.08 m every 30 s)."""
     from .synthetic import SyntheticSequence
 
     out = Path(out)
@@ -117,17 +103,21 @@ def run(duration: float = 180.0, out: str | Path = "runs/demo", building: str = 
     n_frames = int(stream_s * fps)
     seq = SyntheticSequence(building=building, n_frames=n_frames, fps=fps, seed=seed)
     ns = "aisdf/demo"
+    recording = out / "demo.rrd" if rerun_installed() else None
+    if recording is None:
+        log.warning("rerun-sdk is not installed (pip install 'aisdf[viewer]'): no recording in %s", out / "demo.rrd")
+    viewer_port = free_port()
     stack = Stack(namespace=ns, log_dir=out / "logs", args={
         "frontend": ["--building", building, "--set", f"seed={seed}", "--set", f"n_frames={n_frames}",
-                     "--set", "linger=true"],
+                     "--set", "linger=true"] + (["--connect", endpoint(viewer_port)] if recording else []),
         "mapper": ["--preset", preset],
         "query": [],
     })
+    viewer = None
     stop = threading.Event()
     prev = signal.signal(signal.SIGINT, lambda *_: stop.set())
     rng = np.random.default_rng(seed)
     history, summary = [], {}
-    recorder = open_recorder(out / "demo.rrd")
     t0 = time.monotonic()
     tty = sys.stdout.isatty()
     if not quiet:
@@ -135,20 +125,27 @@ def run(duration: float = 180.0, out: str | Path = "runs/demo", building: str = 
               f"{duration:.0f} s; logs in {out / 'logs'}")
     try:
         stack.start(["query", "mapper"])
+        if recording:  # `aisdf view --save`, the live viewer, records the run
+            viewer = start_viewer(stack, viewer_port, recording, out / "logs", mesh_period_s, mesh_resolution)
         with SdfClient(ns, zenoh=stack.client_zenoh, timeout=30.0) as client:
             session = client._session
-            kf_sub = session.declare_subscriber(
-                keys.key(ns, keys.KEYFRAMES),
-                lambda s: recorder.keyframe(protocol.Keyframe.from_msg(protocol.unpack(s.payload.to_bytes()))))
             wait_for(lambda: transport.get_latest(session, keys.key(ns, "info/mapper"), 1.0), 60, what="the mapper")
+            if viewer is not None:
+                wait_for(lambda: viewer.poll() is not None or viewer_up(session, ns), 60, what="the viewer")
+                if viewer.poll() is not None:
+                    raise RuntimeError(f"the viewer exited with {viewer.returncode}; see {out / 'logs' / 'viewer.log'}")
             stack.start(["frontend"])
             t0 = time.monotonic()
-            last_eval = last_mesh = 0.0
+            last_eval = 0.0
             while not stop.is_set() and time.monotonic() - t0 < duration:
                 stop.wait(1.0)
                 for name, p in stack.procs.items():
                     if p.poll() is not None:
                         raise RuntimeError(f"{name} exited with {p.returncode}; see {out / 'logs' / (name + '.log')}")
+                if viewer is not None and viewer.poll() is not None and recording is not None:
+                    log.warning("the viewer exited with %s (see %s): the recording stops there", viewer.returncode,
+                                out / "logs" / "viewer.log")
+                    recording = None
                 el = time.monotonic() - t0
                 fi = transport.get_latest(session, keys.key(ns, "info/frontend"), 1.0) or {}
                 mi = transport.get_latest(session, keys.key(ns, "info/mapper"), 1.0) or {}
@@ -161,13 +158,6 @@ def run(duration: float = 180.0, out: str | Path = "runs/demo", building: str = 
                     r = client.query(pts)
                     row["sdf_error_cm"] = round(100 * float(np.mean(np.abs(r.sdf - seq.gt_sdf(pts)))), 2)
                     last_eval = el
-                if row["map_version"] and el - last_mesh >= 30:
-                    try:
-                        recorder.mesh(client.mesh(0.08))
-                        recorder.surfels(client.surfels(1.0))
-                    except (protocol.ProtocolError, TimeoutError) as e:
-                        log.info("mesh not ready: %s", e)
-                    last_mesh = el
                 history.append(row)
                 if not quiet and (tty or "sdf_error_cm" in row):
                     err = f"{row['sdf_error_cm']:6.2f} cm" if "sdf_error_cm" in row else "   ...   "
@@ -179,16 +169,20 @@ def run(duration: float = 180.0, out: str | Path = "runs/demo", building: str = 
                     sys.stdout.flush()
             if not quiet and tty:
                 print()
-            summary = finish(client, seq, out, recorder, rng, history, time.monotonic() - t0, quiet)
-            kf_sub.undeclare()
+            # The recording covers the live run; the final evaluation and mesh do not wait behind its meshes.
+            if stop_viewer(viewer) not in (None, 0):
+                log.warning("the viewer exited with %s; see %s", viewer.returncode, out / "logs" / "viewer.log")
+            summary = finish(client, seq, out, recording, rng, history, time.monotonic() - t0, quiet)
     finally:
         signal.signal(signal.SIGINT, prev)
+        stop_viewer(viewer)
         stack.stop()
-        recorder.close()
+    if summary and not quiet:
+        print(f"wrote {out / 'summary.json'}" + (f", {summary['recording']}" if summary.get("recording") else ""))
     return summary
 
 
-def finish(client, seq, out: Path, recorder, rng, history, elapsed, quiet) -> dict:
+def finish(client, seq, out: Path, recording: Path | None, rng, history, elapsed, quiet) -> dict:
     frames_seen = max([h["frames"] for h in history] + [1])
     pts = eval_points_from(seq, frames_seen, 200_000, rng)
     gt = seq.gt_sdf(pts)
@@ -206,18 +200,17 @@ def finish(client, seq, out: Path, recorder, rng, history, elapsed, quiet) -> di
                "answered_version": errs["fused_version"], "newest_version": errs["fused_exact_version"],
                "eval_points": len(pts), "planner": planner_example(client, seq)}
     try:
-        m = client.mesh(0.05)
-        recorder.mesh(m)
+        # Generous: on a busy machine the query service may still be computing the viewer's last mesh.
+        m = client.mesh(0.05, timeout=180.0)
         import trimesh
 
         trimesh.Trimesh(m.vertices, m.faces, process=False).export(out / "mesh.ply")
         summary["mesh"] = {"vertices": len(m.vertices), "faces": len(m.faces), "path": str(out / "mesh.ply")}
     except (protocol.ProtocolError, TimeoutError) as e:
         summary["mesh"] = {"error": str(e)}
-    s = client.surfels(2.0)
-    recorder.surfels(s)
+    s = client.surfel_map(2.0)
     summary["surfels"] = 0 if s is None else len(s)
-    summary["recording"] = str(out / "demo.rrd")
+    summary["recording"] = str(recording) if recording else None
     (out / "summary.json").write_text(json.dumps(summary, indent=2))
     if not quiet:
         p = summary["planner"]
@@ -231,5 +224,4 @@ def finish(client, seq, out: Path, recorder, rng, history, elapsed, quiet) -> di
         if summary["answer_lag_s"]:
             print(f"answers trailed the newest weights by {summary['answer_lag_s']['mean']:.2f} s on average, "
                   f"{summary['answer_lag_s']['max']:.2f} s at most (the bake of each new map)")
-        print(f"wrote {out / 'summary.json'}, {out / 'demo.rrd'}")
     return summary

@@ -331,8 +331,10 @@ class LiveViewer:
         request = protocol.MeshRequest(self.mesh_resolution).to_msg()
         while not self._stop.is_set():
             t = time.monotonic()
+            asked = False
             v = self.view
             if v.counts["meshes"] == 0 or v.weights_key is None or v.weights_key[1] != v.counts["mesh_version"]:
+                asked = True
                 try:
                     reply = protocol.MeshReply.from_msg(transport.query(self.session, key, request,
                                                                         self.mesh_timeout_s))
@@ -349,7 +351,10 @@ class LiveViewer:
                 except Exception as e:  # noqa: BLE001 - e.g. the session closing under a request at shutdown
                     if not self._stop.is_set():
                         log.warning("mesh request failed: %s", e)
-            self._stop.wait(max(0.0, self.mesh_period_s - (time.monotonic() - t)))
+            # A mesh at most every period, and never more often than every 2x the last one's time:
+            # meshes take at most half of the query service's mesh worker on a busy machine.
+            took = time.monotonic() - t if asked else 0.0
+            self._stop.wait(max(self.mesh_period_s - took, took))
 
     def close(self, timeout: float = 5.0) -> None:
         """Stop taking messages, record what is queued, stop the threads."""
@@ -409,7 +414,8 @@ def run(cfg: ViewerConfig, stop: threading.Event | None = None) -> dict:
 def add_arguments(p: argparse.ArgumentParser) -> argparse.ArgumentParser:
     add_common_args(p)
     p.add_argument("--save", metavar="FILE.rrd", help="record to this file instead of spawning the viewer window")
-    p.add_argument("--mesh-period", type=float, metavar="S", help="ask query/mesh every S seconds (default 5; 0: never)")
+    p.add_argument("--mesh-period", type=float, metavar="S",
+                   help="ask query/mesh every S seconds (default 5; 0: never)")
     p.add_argument("--mesh-resolution", type=float, metavar="M", help="mesh voxel size in metres (default 0.08)")
     p.add_argument("--duration", type=float, metavar="S", help="stop after S seconds (default: until Ctrl-C/SIGTERM)")
     return p
