@@ -8,7 +8,7 @@ VENV ?= .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.aisdf-installed
 
-.PHONY: setup demo test compose-test bench-query bench clean
+.PHONY: setup demo test compose-test bench-query bench-scaling bench clean
 
 setup: $(STAMP)
 
@@ -33,6 +33,9 @@ compose-test: setup
 
 bench-query: setup
 	$(VENV)/bin/aisdf bench query $(ARGS)
+
+bench-scaling: setup
+	$(VENV)/bin/aisdf bench scaling $(ARGS)
 
 bench: setup
 	$(VENV)/bin/aisdf bench $(ARGS)

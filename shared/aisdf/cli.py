@@ -31,6 +31,12 @@ def _bench_query(args) -> None:
     print(report(res))
 
 
+def _bench_scaling(args) -> None:
+    from .bench.scaling import main as scaling_main
+
+    scaling_main(args)
+
+
 def _bench(args) -> None:
     from .bench.suite import main as suite_main
 
@@ -92,6 +98,16 @@ def main(argv: list[str] | None = None) -> None:
     q.add_argument("--eval-points", type=int, default=200_000)
     q.add_argument("--out", default="runs/bench-query", help="results and the cached map (default runs/bench-query)")
     q.set_defaults(fn=_bench_query)
+    sc = bsub.add_parser("scaling", help="one room to a floor: single network vs submaps (issue 7's table)",
+                         description="Walks the office and the floor at one keyframe a second of wall time (frames "
+                         "rendered up front, the mapper stepping in between), then trains 60 s more; per method: "
+                         "step time, mapper memory, bytes published per second, whole-map SDF error at the end of "
+                         "the walk and 60 s later, each floor room's error just after its visit and at the end, "
+                         "and the issue's criteria. Prints the tables; writes scaling.json and scaling.md.")
+    from .bench.scaling import add_arguments as _scaling_arguments
+
+    _scaling_arguments(sc)
+    sc.set_defaults(fn=_bench_scaling)
     b.set_defaults(fn=_bench)
 
     args = p.parse_args(argv)

@@ -1,0 +1,454 @@
+"""``aisdf bench scaling``: from one room to a floor, one network against submaps (issue 7).
+
+In one run, for every scene (the office, the floor) and every method (``METHODS``: a
+factory of a mapping pipeline), the scene is walked at one keyframe per ``period_s``
+(1 s) of wall time:
+
+* the keyframes are rendered up front (the floor's whole walk, room by room; the office's
+  loop), then keyframe k is added at t = k periods while the mapper steps continuously in
+  between, as the mapper service does;
+* at the end of every period, the messages the mapper would publish then are encoded
+  (``pipe.map_messages(version)``: only what changed) and, for comparison, everything
+  (``changed_only=False``); their bytes are counted;
+* after the walk (t = n periods), training goes on for ``tail_s`` more (60 s).
+
+Evaluations pause the clock (as does encoding the messages, which the service does on
+another thread): the whole map's mean SDF error at the end of the walk and ``tail_s``
+later, on points along the rays of every keyframe (``metrics.eval_points``: one point per
+ray, depth uniform in [0.1, D + 0.1], as the demo and ``aisdf bench`` draw them; here every
+keyframe is used since they are 1 s apart) against the exact SDF; and for the floor each
+room's error ``after_visit_s`` after the camera leaves it (points of the visit's keyframes
+inside that room's region), then again at the end of the walk and at the end (the same
+points; the ratio end / after-visit says whether it was forgotten).
+
+Measured: per-step wall time (mean, p95), mapper memory (``pipe.memory()``: bytes held by
+keyframes, models with their optimiser state, observed space; per keyframe), bytes
+published per second while walking (changed only, and republishing everything), the
+errors above, and the issue's criteria evaluated per method. ``run`` writes
+``scaling.json`` and ``scaling.md`` under ``out``; ``--quick`` is a tiny walk (a dozen
+keyframes a quarter second apart, spread over the whole floor) for CI.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import platform
+import time
+from collections.abc import Callable
+from contextlib import contextmanager
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from pydantic import Field
+
+from ..config import Model, deep_merge
+
+log = logging.getLogger("aisdf.bench.scaling")
+
+
+# ------------------------------------------------------------------ methods (factories)
+
+
+def _single(preset: str, training: dict):
+    from ..pipeline import MappingPipeline
+
+    return MappingPipeline.from_settings(preset, training=training, atlanta=True)
+
+
+def _submaps(preset: str, training: dict):
+    try:
+        from ..submaps import SubmapPipeline
+    except ImportError:
+        from ..submaps.pipeline import SubmapPipeline
+    return SubmapPipeline.from_settings(preset, training=training, atlanta=True)
+
+
+# name -> (label, factory(preset, training overrides) -> a pipeline with add_keyframe, step,
+# sdf, map_messages, memory, n_keyframes, steps). Add a method by adding an entry.
+METHODS: dict[str, tuple[str, Callable[[str, dict], Any]]] = {
+    "single": ("single network", _single),
+    "submaps": ("submaps", _submaps),
+}
+
+
+# ------------------------------------------------------------------ configuration
+
+
+class ScalingConfig(Model):
+    scenes: list[str] = Field(default_factory=lambda: ["office", "floor"], description="synthetic buildings")
+    methods: list[str] = Field(default_factory=lambda: ["single", "submaps"], description="METHODS keys")
+    keyframes: int = Field(200, ge=2, description="keyframes per walk")
+    period_s: float = Field(1.0, gt=0, description="wall seconds between keyframes (and per publication)")
+    tail_s: float = Field(60.0, ge=0, description="training after the walk (wall seconds)")
+    after_visit_s: float = Field(5.0, ge=0, description="a room is scored this long after the camera leaves it")
+    preset: str = Field("cpu", description="training preset")
+    training: dict[str, Any] = Field(default_factory=dict, description="TrainingConfig overrides")
+    H: int = Field(120, ge=8)
+    W: int = Field(160, ge=8)
+    noise: bool = Field(True, description="Kinect-like depth noise")
+    n_points: int = Field(200_000, ge=100, description="whole-map evaluation points")
+    n_room_points: int = Field(20_000, ge=50, description="evaluation points per room")
+    seed: int = Field(0, description="building, walk, noise and training seed")
+    threads: int | None = Field(None, ge=1, description="torch threads (None: torch's default)")
+    out: str = Field("runs/bench-scaling", description="results folder")
+    progress: bool = Field(True, description="print a line per event")
+
+
+PROFILES: dict[str, dict[str, Any]] = {
+    "full": {},
+    "quick": {"keyframes": 12, "period_s": 0.25, "tail_s": 2.0, "after_visit_s": 0.0, "H": 48, "W": 64,
+              "n_points": 3000, "n_room_points": 300,
+              "training": {"network": {"width": 64}, "n_rays": 40, "window_size": 3}},
+}
+
+
+def resolve(profile: str = "full", **overrides: Any) -> ScalingConfig:
+    if profile not in PROFILES:
+        raise ValueError(f"unknown profile {profile!r}; known: {', '.join(PROFILES)}")
+    return ScalingConfig.model_validate(deep_merge(PROFILES[profile], {k: v for k, v in overrides.items()
+                                                                        if v is not None}))
+
+
+# ------------------------------------------------------------------ the walk
+
+
+class _Clock:
+    """Wall seconds since start, less the paused intervals."""
+
+    def __init__(self) -> None:
+        self.t0, self.paused = time.perf_counter(), 0.0
+
+    def __call__(self) -> float:
+        return time.perf_counter() - self.t0 - self.paused
+
+    @contextmanager
+    def pause(self):
+        t = time.perf_counter()
+        try:
+            yield
+        finally:
+            self.paused += time.perf_counter() - t
+
+
+def scene_frames(name: str, cfg: ScalingConfig) -> tuple[Any, list[dict], float]:
+    """The sequence, its keyframes rendered up front, and its stream seconds per keyframe.
+    A building with a floor plan is walked whole: at 1 keyframe per stream second when
+    ``keyframes`` cover the walk, else spread evenly over it."""
+    from ..synthetic import PLANS, SyntheticSequence
+    from ..synthetic.trajectory import walk_duration
+
+    n = cfg.keyframes
+    fps = 1.0 if name not in PLANS else min(1.0, n / walk_duration(PLANS[name]()))
+    seq = SyntheticSequence(building=name, n_frames=n, H=cfg.H, W=cfg.W, fps=fps, noise=cfg.noise, seed=cfg.seed)
+    return seq, [seq.frame(i) for i in range(n)], 1.0 / fps
+
+
+def _frame(f: dict):
+    from ..mapping.frames import Frame
+
+    return Frame(int(f["frame_id"]), float(f["stamp"]), f["depth"], f["K"], f["T_WC"])
+
+
+class _Scorer:
+    """Fixed evaluation points with their exact SDF; ``score(pipe)`` -> mean |error| in cm."""
+
+    def __init__(self, points: np.ndarray, gt: np.ndarray):
+        self.points, self.gt = points, gt
+
+    def score(self, pipe) -> float:
+        f = np.asarray(pipe.sdf(self.points), dtype=np.float64)
+        return round(100.0 * float(np.mean(np.abs(f - self.gt))), 3)
+
+
+def _whole_scorer(seq, frames: list[dict], cfg: ScalingConfig) -> _Scorer:
+    from ..metrics import eval_points
+
+    p = eval_points(frames, n_points=cfg.n_points, every=1, rng=np.random.default_rng([cfg.seed, 7]), far_margin=0.1)
+    return _Scorer(p, seq.gt_sdf(p))
+
+
+def _room_scorer(seq, frames: list[dict], room: str, cfg: ScalingConfig) -> _Scorer | None:
+    from ..metrics import eval_points
+
+    if not frames:
+        return None
+    idx = seq.plan.names.index(room)
+    p = eval_points(frames, n_points=4 * cfg.n_room_points, every=1, rng=np.random.default_rng([cfg.seed, 8, idx]),
+                    far_margin=0.1)
+    p = p[seq.region_of(p) == idx][: cfg.n_room_points]
+    return _Scorer(p, seq.gt_sdf(p)) if len(p) >= 20 else None
+
+
+def _msg_bytes(msgs) -> int:
+    return int(sum(len(k) + len(v) for k, v in msgs))
+
+
+def walk(pipe, seq, frames: list[dict], stream_per_kf: float, cfg: ScalingConfig, whole: _Scorer,
+         say: Callable[[str], None] = lambda s: None) -> dict:
+    """One method on one scene; see the module docstring. Returns the run's record."""
+    n, P = len(frames), cfg.period_s
+    # Events in wall seconds: rooms scored after their visit, the walk's end, the end.
+    events: list[tuple[float, str, str]] = []
+    for room, (t_in, t_out) in getattr(seq, "visits", {}).items():
+        left = t_out / stream_per_kf * P  # wall time at which the camera leaves the room
+        events.append((min(left + cfg.after_visit_s, n * P), "room", room))
+    t_walk = n * P
+    events += [(t_walk, "walk_end", ""), (t_walk + cfg.tail_s, "end", "")]
+    events.sort(key=lambda e: (e[0], e[1] != "room"))
+    step_ms: list[float] = []
+    periods: list[dict] = []
+    rooms: dict[str, dict] = {}
+    scorers: dict[str, _Scorer] = {}
+    rec: dict[str, Any] = {"rejected": 0}
+    clock = _Clock()
+    next_kf, next_period, version = 0, P, 1
+    while True:
+        t = clock()
+        if next_kf < n and t >= next_kf * P:
+            try:
+                pipe.add_keyframe(_frame(frames[next_kf]))
+            except ValueError as e:
+                rec["rejected"] += 1
+                log.info("keyframe %d rejected: %s", next_kf, e)
+            next_kf += 1
+            continue
+        if t >= next_period:
+            with clock.pause():
+                changed = pipe.map_messages(version)  # first: it marks what it sends as published
+                full = pipe.map_messages(version, changed_only=False)
+            periods.append({"t": round(next_period, 3), "walking": next_period <= t_walk + 1e-9,
+                            "bytes": _msg_bytes(changed), "messages": len(changed), "bytes_all": _msg_bytes(full),
+                            "messages_all": len(full)})
+            next_period += P
+            version += 1
+            continue
+        if events and t >= events[0][0]:
+            when, kind, room = events.pop(0)
+            with clock.pause():
+                if kind == "room":
+                    t_in, t_out = seq.visits[room]
+                    vis = [f for f in frames[:next_kf] if t_in - 1e-9 <= f["stamp"] <= t_out + 1e-9]
+                    sc = _room_scorer(seq, vis, room, cfg)
+                    if sc is not None:
+                        scorers[room] = sc
+                        rooms[room] = {"t_after_visit": round(when, 2), "points": len(sc.points),
+                                       "keyframes": len(vis), "after_visit_cm": sc.score(pipe)}
+                        say(f"  {room}: {rooms[room]['after_visit_cm']:.2f} cm just after its visit "
+                            f"({len(vis)} keyframes, t = {when:.0f} s)")
+                else:
+                    key = "walk_end" if kind == "walk_end" else "end"
+                    rec[f"error_{key}_cm"] = whole.score(pipe)
+                    rec[f"memory_{key}"] = {k: int(v) for k, v in pipe.memory().items()}
+                    rec[f"steps_{key}"] = int(pipe.steps)
+                    for r, sc in scorers.items():
+                        rooms[r][f"{key}_cm"] = sc.score(pipe)
+                    say(f"  {'end of the walk' if key == 'walk_end' else f'+{cfg.tail_s:g} s'}: "
+                        f"{rec[f'error_{key}_cm']:.2f} cm, {pipe.steps} steps")
+            if kind == "end":
+                break
+            continue
+        if pipe.n_keyframes == 0:  # nothing to train on yet
+            time.sleep(max(0.0, min(next_kf * P, next_period) - t))
+            continue
+        s = time.perf_counter()
+        pipe.step()
+        step_ms.append(1e3 * (time.perf_counter() - s))
+    walking = [p for p in periods if p["walking"]]
+    mem = rec["memory_end"]
+    total = int(sum(mem.values()))
+    for r in rooms.values():
+        r["ratio_end"] = round(r["end_cm"] / r["after_visit_cm"], 3) if r["after_visit_cm"] > 0 else None
+    rec.update({
+        "keyframes": int(pipe.n_keyframes), "steps": int(pipe.steps),
+        "step_ms": {"mean": round(float(np.mean(step_ms)), 2) if step_ms else None,
+                    "p95": round(float(np.percentile(step_ms, 95)), 2) if step_ms else None, "n": len(step_ms)},
+        "memory_bytes": total, "memory_per_keyframe": int(total / max(pipe.n_keyframes, 1)),
+        "bytes_per_s": round(sum(p["bytes"] for p in walking) / (len(walking) * P), 1) if walking else None,
+        "bytes_per_s_all": round(sum(p["bytes_all"] for p in walking) / (len(walking) * P), 1) if walking else None,
+        "bytes_per_s_tail": round(sum(p["bytes"] for p in periods if not p["walking"])
+                                  / max(1, len(periods) - len(walking)) / P, 1),
+        "rooms": rooms, "periods": periods,
+    })
+    rec["bytes_ratio"] = round(rec["bytes_per_s"] / rec["bytes_per_s_all"], 4) if rec["bytes_per_s_all"] else None
+    return rec
+
+
+# ------------------------------------------------------------------ criteria and report
+
+
+def criteria(res: dict) -> dict[str, dict]:
+    """The issue's 'done when' figures, per method: {method: {criterion: {value, limit, ok}}}."""
+    out: dict[str, dict] = {}
+    tail = f"{res['config']['tail_s']:g} s"
+    for m, by_scene in res["runs"].items():
+        fl, of = by_scene.get("floor"), by_scene.get("office")
+        c: dict[str, dict] = {}
+        if fl:
+            c[f"floor error {tail} after the walk <= 5 cm"] = _crit(fl["error_end_cm"], 5.0)
+            if fl["rooms"]:
+                worst = max((r["ratio_end"] or 0.0) for r in fl["rooms"].values())
+                c[f"every room: error {tail} after the walk / just after its visit <= 1.2"] = _crit(worst, 1.2)
+            if fl.get("bytes_ratio") is not None:
+                c["bytes/s walking the floor <= 1/3 of republishing everything"] = _crit(fl["bytes_ratio"], 1 / 3)
+        if fl and of:
+            c[f"floor error <= 1.5x the office's ({tail} after)"] = _crit(_ratio(fl["error_end_cm"], of["error_end_cm"]), 1.5)
+            c["step time floor <= 1.2x office (mean)"] = _crit(_ratio(fl["step_ms"]["mean"], of["step_ms"]["mean"]), 1.2)
+            c["memory per keyframe, floor / office (no limit)"] = {
+                "value": round(fl["memory_per_keyframe"] / of["memory_per_keyframe"], 3), "limit": None, "ok": None}
+        out[m] = c
+    return out
+
+
+def _crit(value: float | None, limit: float) -> dict:
+    if value is None or not np.isfinite(value):
+        return {"value": None, "limit": round(limit, 4), "ok": None}
+    return {"value": round(float(value), 4), "limit": round(limit, 4), "ok": bool(value <= limit)}
+
+
+def _ratio(a: float | None, b: float | None) -> float | None:
+    return None if a is None or not b else a / b
+
+
+def _mb(b: int) -> str:
+    return f"{b / 1e6:.1f}"
+
+
+def report(res: dict) -> str:
+    cfg = res["config"]
+    lines = [f"Scaling: {', '.join(res['scenes'])}; {cfg['keyframes']} keyframes, one per {cfg['period_s']:g} s of "
+             f"wall time, then {cfg['tail_s']:g} s more training; preset {cfg['preset']}; {res['machine']}.", ""]
+    avail = [m for m in res["methods"] if m in res["runs"]]
+    head = "| | " + " | ".join(f"{s}: {METHODS[m][0]}" for s in res["scenes"] for m in avail) + " |"
+    lines += [head, "|---|" + "---:|" * (len(res["scenes"]) * len(avail))]
+    rows = [
+        ("keyframes", lambda r: f"{r['keyframes']}"),
+        ("training steps", lambda r: f"{r['steps']:,}"),
+        ("step time mean / p95 (ms)", lambda r: f"{r['step_ms']['mean']:.1f} / {r['step_ms']['p95']:.1f}"
+         if r["step_ms"]["n"] else "no step"),
+        ("mapper memory (MB)", lambda r: _mb(r["memory_bytes"])),
+        ("  keyframes / model+optimiser / observed (MB)",
+         lambda r: " / ".join(_mb(r["memory_end"].get(k, 0)) for k in ("keyframes", "model", "observed"))),
+        ("bytes per keyframe (kB)", lambda r: f"{r['memory_per_keyframe'] / 1e3:.1f}"),
+        ("published while walking (kB/s)", lambda r: f"{r['bytes_per_s'] / 1e3:.1f}"),
+        ("republishing everything (kB/s)", lambda r: f"{r['bytes_per_s_all'] / 1e3:.1f}"),
+        ("SDF error, end of the walk (cm)", lambda r: f"{r['error_walk_end_cm']:.2f}"),
+        (f"SDF error, +{cfg['tail_s']:g} s (cm)", lambda r: f"{r['error_end_cm']:.2f}"),
+    ]
+    for label, fn in rows:
+        cells = []
+        for s in res["scenes"]:
+            for m in avail:
+                r = res["runs"][m].get(s)
+                cells.append(fn(r) if r else "-")
+        lines.append(f"| {label} | " + " | ".join(cells) + " |")
+    rooms = sorted({r for m in avail for r in (res["runs"][m].get("floor") or {}).get("rooms", {})})
+    if rooms:
+        lines += ["", f"Floor rooms: SDF error (cm) just after the visit ({cfg['after_visit_s']:g} s after leaving) / "
+                      f"at the end of the walk / +{cfg['tail_s']:g} s (ratio +{cfg['tail_s']:g} s / after the visit)", ""]
+        lines += ["| room | " + " | ".join(METHODS[m][0] for m in avail) + " |", "|---|" + "---|" * len(avail)]
+        for room in rooms:
+            cells = []
+            for m in avail:
+                r = res["runs"][m]["floor"]["rooms"].get(room)
+                cells.append(f"{r['after_visit_cm']:.2f} / {r['walk_end_cm']:.2f} / {r['end_cm']:.2f} "
+                             f"({r['ratio_end']:.2f})" if r else "-")
+            lines.append(f"| {room} | " + " | ".join(cells) + " |")
+    lines += ["", "Criteria (issue 7):", ""]
+    lines += ["| criterion | " + " | ".join(METHODS[m][0] for m in avail) + " |", "|---|" + "---|" * len(avail)]
+    names = list(dict.fromkeys(c for m in avail for c in res["criteria"].get(m, {})))
+    for c in names:
+        cells = []
+        for m in avail:
+            v = res["criteria"][m].get(c)
+            cells.append("-" if v is None or v["value"] is None else f"{v['value']:.3g}" + ("" if v["ok"] is None else
+                                                                        (" ✓" if v["ok"] else " ✗")))
+        lines.append(f"| {c} | " + " | ".join(cells) + " |")
+    for m, why in res.get("unavailable", {}).items():
+        lines.append(f"\n{m}: not run ({why})")
+    return "\n".join(lines)
+
+
+# ------------------------------------------------------------------ entry point
+
+
+def _machine(threads: int | None) -> str:
+    import torch
+
+    return f"{platform.machine()}, {os.cpu_count()} CPU cores, torch threads {threads or torch.get_num_threads()}"
+
+
+def run(cfg: ScalingConfig) -> dict:
+    import torch
+
+    out = Path(cfg.out)
+    out.mkdir(parents=True, exist_ok=True)
+    if cfg.threads:
+        torch.set_num_threads(cfg.threads)
+    unknown = [m for m in cfg.methods if m not in METHODS]
+    if unknown:
+        raise SystemExit(f"unknown method(s) {unknown}; known: {', '.join(METHODS)}")
+    say = print if cfg.progress else (lambda s: None)
+    training = deep_merge(cfg.training, {"seed": cfg.seed})
+    res: dict[str, Any] = {"config": cfg.model_dump(mode="json"), "scenes": list(cfg.scenes),
+                           "methods": list(cfg.methods), "machine": _machine(cfg.threads), "runs": {},
+                           "unavailable": {}, "scene_info": {}}
+    t_start = time.time()
+    for name in cfg.scenes:
+        t = time.perf_counter()
+        seq, frames, per_kf = scene_frames(name, cfg)
+        whole = _whole_scorer(seq, frames, cfg)
+        lo, hi = seq.scene.room.polygon.min(axis=0), seq.scene.room.polygon.max(axis=0)
+        res["scene_info"][name] = {"footprint_m": np.round(hi - lo, 2).tolist(), "keyframes": len(frames),
+                                   "stream_s_per_keyframe": round(per_kf, 4), "eval_points": len(whole.points),
+                                   "visits": {r: [round(a, 2), round(b, 2)] for r, (a, b) in seq.visits.items()},
+                                   "prepare_s": round(time.perf_counter() - t, 1)}
+        for m in cfg.methods:
+            if m in res["unavailable"]:
+                continue
+            try:
+                pipe = METHODS[m][1](cfg.preset, training)
+            except ImportError as e:
+                res["unavailable"][m] = f"{type(e).__name__}: {e}"
+                log.warning("method %s not available: %s", m, e)
+                continue
+            say(f"{name} / {METHODS[m][0]}: {len(frames)} keyframes, one per {cfg.period_s:g} s, then "
+                f"{cfg.tail_s:g} s")
+            res["runs"].setdefault(m, {})[name] = walk(pipe, seq, frames, per_kf, cfg, whole, say)
+            del pipe
+    res["criteria"] = criteria(res)
+    res["wall_s"] = round(time.time() - t_start, 1)
+    (out / "scaling.json").write_text(json.dumps(res, indent=1))
+    md = report(res)
+    (out / "scaling.md").write_text(md + "\n")
+    return res
+
+
+def add_arguments(p) -> None:
+    p.add_argument("--quick", action="store_true", help="a tiny walk (a dozen keyframes, seconds) for CI")
+    p.add_argument("--scenes", nargs="+", help="synthetic buildings (default office floor)")
+    p.add_argument("--methods", nargs="+", choices=list(METHODS), help="default: all")
+    p.add_argument("--keyframes", type=int, help="keyframes per walk (default 200)")
+    p.add_argument("--period-s", type=float, help="wall seconds between keyframes (default 1)")
+    p.add_argument("--tail-s", type=float, help="training after the walk (default 60 s)")
+    p.add_argument("--after-visit-s", type=float, help="score a room this long after leaving it (default 5 s)")
+    p.add_argument("--preset", choices=["cpu", "paper", "auto"], help="training preset (default cpu)")
+    p.add_argument("--n-points", type=int, help="whole-map evaluation points (default 200000)")
+    p.add_argument("--seed", type=int)
+    p.add_argument("--threads", type=int, help="torch threads")
+    p.add_argument("--out", help="results folder (default runs/bench-scaling)")
+
+
+def config_from_args(args) -> ScalingConfig:
+    g = lambda k: getattr(args, k, None)  # noqa: E731
+    return resolve("quick" if g("quick") else "full", **{k: g(k) for k in (
+        "scenes", "methods", "keyframes", "period_s", "tail_s", "after_visit_s", "preset", "n_points", "seed",
+        "threads", "out")})
+
+
+def main(args) -> None:
+    res = run(config_from_args(args))
+    print(report(res))
+    print(f"results in {Path(res['config']['out']) / 'scaling.json'} ({res['wall_s']:.0f} s)")
