@@ -21,7 +21,11 @@ class QueryConfig(ServiceConfig):
     fuse_radius: float = Field(0.5, gt=0, description="fused source uses a surfel only when it is this close (m)")
     mesh_resolution: float = Field(0.05, gt=0, description="default marching-cubes voxel size (m)")
     mesh_max_cells: int = Field(16_000_000, ge=1, description="largest marching-cubes grid; above it: too_large")
+    mesh_tile: int = Field(64, ge=2, le=1024, description="marching cubes in tiles of at most this many samples per "
+                           "edge (memory: one tile's samples, whatever the map's size)")
     weights_retry_s: float = Field(2.0, gt=0, description="how often to ask for the latest map until one arrives")
+    submap_get_timeout_s: float = Field(5.0, gt=0, description="protocol 1.3: how long a get on map/submaps/** "
+                                        "(late join, a submap the index lists newer) waits for its replies")
     # Protocol 1.1: the baked field and load shedding.
     bake: bool = Field(True, description="bake the fused field of every new map and answer fused requests from it")
     bake_threads: int = Field(2, ge=1, le=64, description="threads evaluating the network while baking")

@@ -14,6 +14,17 @@ network of the newest map.
 
 Maps are ordered by ``(epoch, version)``: a restarted mapper (a new epoch) replaces the
 map of the one that crashed even though its version counter restarted lower.
+
+Submaps (protocol 1.3, issue 7): a submap mapper publishes one WeightSnapshot per changed
+submap (``map/submaps/<id>``) and an index (``map/index``). The engine keeps per submap
+the newest snapshot of the newest epoch (:class:`SubmapSet`); the map's implicit field is
+their blend (``aisdf.submaps.field.blend``: each point from the submaps whose extended
+boxes hold it, C¹ across their overlaps), its observed space the union of theirs, its
+version the newest of the index's and the snapshots'. A new epoch replaces the whole set.
+The bake of a new submap map reuses every sample of the previous bake outside the
+extended boxes of the submaps that changed (and away from surfels that changed), so a
+bake costs what changed, not the building. Meshes are marched in tiles of at most
+``mesh_tile``³ samples (one sample of overlap, seam vertices welded), in either mode.
 """
 
 from __future__ import annotations
@@ -35,6 +46,8 @@ from aisdf.collision import chomp_cost
 from aisdf.fusion import fuse
 from aisdf.network import build_model, load_numpy_state
 from aisdf.observed import ObservedGrid
+from aisdf.submaps.field import assign, blend
+from aisdf.submaps.grid import SubmapGrid, parse_cell_id
 from aisdf.surfel_types import Surfels
 
 log = logging.getLogger(__name__)
@@ -48,20 +61,136 @@ def pick_device(name: str) -> torch.device:
 
 
 @dataclass(frozen=True)
-class MapState:
-    version: int  # WeightSnapshot.version: the reply's map_version
+class Submap:
+    """One submap's newest snapshot, its network rebuilt."""
+
+    cell: tuple[int, int, int]
+    version: int  # the global map version it was published at
     step: int
     net: torch.nn.Module
+    observed: ObservedGrid | None  # observed space of its extended box
+    bounds: np.ndarray | None
+
+
+@dataclass(frozen=True)
+class SubmapSet:
+    """The submaps of one mapper incarnation (replaced whole, never changed in place)."""
+
+    grid: SubmapGrid
+    submaps: dict  # cell -> Submap
+
+    def changed_since(self, other: "SubmapSet") -> list[tuple[int, int, int]]:
+        """Cells whose submap differs (added, replaced or gone) between ``other`` and this set."""
+        cells = set(self.submaps) | set(other.submaps)
+        return sorted(c for c in cells if self.submaps.get(c) is not other.submaps.get(c))
+
+
+@dataclass(frozen=True)
+class MapState:
+    version: int  # WeightSnapshot.version (submaps: the newest of the index's and the snapshots'): map_version
+    step: int
+    net: torch.nn.Module | None  # the single network; None when the map is made of submaps
     bounds: np.ndarray | None  # (2, 3) world AABB of what was observed, when the mapper sent it
     surfels: Surfels | None
     surfel_version: int
     epoch: int = 0  # the mapper incarnation: maps order by (epoch, version)
     observed: ObservedGrid | None = None  # observed space, when the mapper sent it (protocol 1.1)
     received: float = field(default_factory=time.monotonic)  # when these weights arrived
+    submaps: SubmapSet | None = None  # protocol 1.3: the map as submaps (then net is None)
 
     @property
     def order(self) -> tuple[int, int]:
         return (self.epoch, self.version)
+
+    def with_surfels(self, surfels: Surfels | None, surfel_version: int) -> "MapState":
+        return MapState(self.version, self.step, self.net, self.bounds, surfels, surfel_version, self.epoch,
+                        self.observed, self.received, self.submaps)
+
+    def same_field(self, other: "MapState") -> bool:
+        """Same implicit field and surfels (a bake of one is a bake of the other)."""
+        if self.surfels is not other.surfels:
+            return False
+        if self.submaps is None or other.submaps is None:
+            return self.submaps is other.submaps and self.net is other.net
+        return self.submaps.grid is other.submaps.grid and not self.submaps.changed_since(other.submaps)
+
+
+def union_observed(grids: list[ObservedGrid], align: float) -> ObservedGrid | None:
+    """One grid holding every voxel any of ``grids`` holds (their union), its origin on a
+    multiple of ``align`` (the bake's block, so that successive unions share the bake's
+    lattice). Grids on the same voxel lattice are pasted; others are resampled at the
+    union's voxel centres."""
+    grids = [g for g in grids if g is not None]
+    if not grids:
+        return None
+    voxel = min(g.voxel for g in grids)
+    lo = np.min([g.origin for g in grids], axis=0)
+    hi = np.max([g.bounds[1] for g in grids], axis=0)
+    step = align if align > 0 and abs(align / voxel - round(align / voxel)) < 1e-6 else voxel
+    origin = np.floor(lo / step + 1e-9) * step
+    shape = np.maximum(np.ceil((hi - origin) / voxel - 1e-6).astype(np.int64), 1)
+    occ = np.zeros(tuple(shape), bool)
+    for g in grids:
+        off = (g.origin - origin) / voxel
+        ioff = np.round(off).astype(np.int64)
+        if abs(g.voxel - voxel) < 1e-9 * voxel and np.abs(off - ioff).max() < 1e-6:
+            sl = tuple(slice(ioff[a], ioff[a] + g.occ.shape[a]) for a in range(3))
+            occ[sl] |= g.occ
+        else:  # another lattice: the union's voxels whose centres it holds
+            a = np.maximum(np.floor((g.origin - origin) / voxel).astype(np.int64), 0)
+            b = np.minimum(np.ceil((g.bounds[1] - origin) / voxel).astype(np.int64), shape)
+            idx = np.stack(np.meshgrid(*[np.arange(a[k], b[k]) for k in range(3)], indexing="ij"), -1).reshape(-1, 3)
+            hit = g.contains(origin + (idx + 0.5) * voxel)
+            occ[tuple(idx[hit].T)] = True
+    return ObservedGrid(origin, voxel, occ)
+
+
+def surfel_changes(old: Surfels | None, new: Surfels | None) -> np.ndarray | None:
+    """(K, 2, 3) world boxes of the surfels in one map and not the other (added, removed or
+    changed), or None when everything is to be treated as changed."""
+    rows = []
+    for s in (old, new):
+        if s is None or not len(s):
+            rows.append(np.zeros((0, 15)))
+            continue
+        rows.append(np.concatenate([s.center, s.normal, s.axis1, s.axis2, s.extent,
+                                    s.direction[:, None].astype(np.float64)], axis=1))
+    keys = [{r.tobytes(): i for i, r in enumerate(np.ascontiguousarray(x))} for x in rows]
+    boxes = []
+    for (mine, other), x in zip(((keys[0], keys[1]), (keys[1], keys[0])), rows):
+        idx = [i for k, i in mine.items() if k not in other]
+        if not idx:
+            continue
+        r = x[idx]
+        half = 0.5 * (np.abs(r[:, 6:9]) * r[:, 12:13] + np.abs(r[:, 9:12]) * r[:, 13:14])
+        boxes.append(np.stack([r[:, 0:3] - half, r[:, 0:3] + half], axis=1))
+    return np.concatenate(boxes) if boxes else np.zeros((0, 2, 3))
+
+
+def in_boxes(points: np.ndarray, boxes: np.ndarray, grow: float, cell: float = 1.0) -> np.ndarray:
+    """(M,) bool: points within ``grow`` of any axis-aligned box (binned, so many boxes and
+    many points stay cheap)."""
+    p = np.asarray(points, np.float64).reshape(-1, 3)
+    out = np.zeros(len(p), bool)
+    if not len(boxes) or not len(p):
+        return out
+    lo, hi = boxes[:, 0] - grow, boxes[:, 1] + grow
+    cells = np.floor(p / cell).astype(np.int64)
+    uc, inv = np.unique(cells, axis=0, return_inverse=True)
+    order = np.argsort(inv.reshape(-1), kind="stable")
+    bounds = np.searchsorted(inv.reshape(-1)[order], np.arange(len(uc) + 1))
+    clo, chi = uc * cell, (uc + 1) * cell
+    for n in range(len(uc)):  # boxes meeting this cell, then its points
+        meet = np.all((lo <= chi[n]) & (hi >= clo[n]), axis=1)
+        if not meet.any():
+            continue
+        ii = order[bounds[n]:bounds[n + 1]]
+        q = p[ii]
+        hit = np.zeros(len(ii), bool)
+        for bl, bh in zip(lo[meet], hi[meet]):
+            hit |= np.all((q >= bl) & (q <= bh), axis=1)
+        out[ii] = hit
+    return out
 
 
 @dataclass(frozen=True)
@@ -74,13 +203,17 @@ class QueryEngine:
     def __init__(self, max_points: int = 1_000_000, chunk_points: int = 65_536, device: str = "auto",
                  fuse_radius: float = 0.5, mesh_resolution: float = 0.05, mesh_max_cells: int = 16_000_000,
                  bake: bool = True, bake_config: BakeConfig | None = None, bake_threads: int = 2,
-                 bake_duty: float = 0.75, bake_nice: int = 10):
+                 bake_duty: float = 0.75, bake_nice: int = 10, mesh_tile: int = 64):
         self.max_points = max_points
         self.chunk_points = chunk_points
         self.device = pick_device(device)
         self.fuse_radius = fuse_radius
         self.mesh_resolution = mesh_resolution
         self.mesh_max_cells = mesh_max_cells
+        if mesh_tile < 2:
+            raise ValueError("mesh_tile must be at least 2 samples")
+        self.mesh_tile = int(mesh_tile)
+        self._index: protocol.SubmapIndex | None = None  # the newest map/index (protocol 1.3)
         self.bake_enabled = bake
         self.bake_config = bake_config or BakeConfig()
         self.bake_threads = bake_threads
@@ -103,7 +236,8 @@ class QueryEngine:
         return cls(cfg.max_points, cfg.chunk_points, cfg.device, cfg.fuse_radius, cfg.mesh_resolution,
                    cfg.mesh_max_cells, cfg.bake,
                    BakeConfig(block=cfg.bake_block, fine=cfg.bake_fine, band=cfg.bake_band, tol=cfg.bake_tol,
-                              near_surface=cfg.bake_near_surface), cfg.bake_threads, cfg.bake_duty, cfg.bake_nice)
+                              near_surface=cfg.bake_near_surface), cfg.bake_threads, cfg.bake_duty, cfg.bake_nice,
+                   cfg.mesh_tile)
 
     # ------------------------------------------------------------------ map updates
 
@@ -122,19 +256,7 @@ class QueryEngine:
         cur = self._state
         if cur is not None and order <= cur.order:
             return False
-        net = build_model(snap.model)
-        load_numpy_state(net, snap.state)
-        net = net.to(self.device).eval()
-        for p in net.parameters():
-            p.requires_grad_(False)
-        bounds = snap.model.get("bounds")
-        bounds = np.asarray(bounds, dtype=np.float64).reshape(2, 3) if bounds is not None else None
-        observed = None
-        if snap.observed is not None:
-            try:
-                observed = ObservedGrid.from_msg(snap.observed)
-            except protocol.ProtocolError as e:
-                raise ValueError(f"observed space: {e.message}") from None
+        net, bounds, observed = self._load(snap)
         with self._lock:
             cur = self._state
             if cur is not None and order <= cur.order:
@@ -147,6 +269,123 @@ class QueryEngine:
         self._bake_wanted.set()
         return True
 
+    def _load(self, snap: protocol.WeightSnapshot):
+        """(network, bounds, observed grid) of a snapshot; ValueError when it cannot be loaded."""
+        net = build_model(snap.model)
+        load_numpy_state(net, snap.state)
+        net = net.to(self.device).eval()
+        for p in net.parameters():
+            p.requires_grad_(False)
+        bounds = snap.model.get("bounds")
+        try:
+            bounds = np.asarray(bounds, dtype=np.float64).reshape(2, 3) if bounds is not None else None
+        except (TypeError, ValueError):
+            raise ValueError("model bounds must be 2x3 numbers") from None
+        observed = None
+        if snap.observed is not None:
+            try:
+                observed = ObservedGrid.from_msg(snap.observed)
+            except protocol.ProtocolError as e:
+                raise ValueError(f"observed space: {e.message}") from None
+        return net, bounds, observed
+
+    # ------------------------------------------------------------------ submaps (protocol 1.3)
+
+    @staticmethod
+    def _submap_newer(cur: MapState | None, epoch: int, version: int, cell) -> bool:
+        if cur is None:
+            return True
+        if cur.submaps is None:  # a single network: the newer map wins, as between weights
+            return (epoch, version) > cur.order
+        if epoch != cur.epoch:
+            return epoch > cur.epoch
+        held = cur.submaps.submaps.get(cell)
+        return held is None or version > held.version
+
+    def set_submap(self, snap: protocol.WeightSnapshot) -> bool:
+        """Take one submap's snapshot (``map/submaps/<id>``) if it is newer than the one held
+        for that cell (by (epoch, version)); a newer epoch starts a new set. False if not
+        newer; ValueError on a snapshot that cannot be loaded (the map stays as it was)."""
+        if not isinstance(snap.submap, dict):
+            raise ValueError("not a submap snapshot (no 'submap')")
+        try:
+            sid = snap.submap["id"]
+            cell = parse_cell_id(sid)
+            grid = SubmapGrid.from_msg(snap.submap["grid"])
+        except (KeyError, TypeError) as e:
+            raise ValueError(f"bad submap header: {e}") from None
+        if not self._submap_newer(self._state, snap.epoch, snap.version, cell):
+            return False
+        net, bounds, observed = self._load(snap)
+        with self._lock:
+            cur = self._state
+            if not self._submap_newer(cur, snap.epoch, snap.version, cell):
+                return False
+            if cur is not None and cur.submaps is not None and cur.epoch == snap.epoch:
+                if not cur.submaps.grid.same_as(grid):
+                    raise ValueError(f"submap {sid}: its grid differs from the grid of this mapper's other submaps")
+                grid, subs, version = cur.submaps.grid, dict(cur.submaps.submaps), cur.version
+            else:  # the first submap, or a new mapper incarnation: a new set
+                subs, version = {}, snap.version
+            subs[cell] = Submap(cell, snap.version, snap.step, net, observed, bounds)
+            idx = self._index
+            if idx is not None and idx.epoch == snap.epoch and self._complete(subs, idx):
+                version = max(version, idx.version)
+            self._state = self._submap_state(SubmapSet(grid, subs), max(version, snap.version), snap.epoch, cur)
+            self._arrivals.append((self._state.order, self._state.received))
+        self._bake_wanted.set()
+        return True
+
+    @staticmethod
+    def _complete(subs: dict, idx: protocol.SubmapIndex) -> bool:
+        """Does ``subs`` hold every submap the index lists, at least at its listed version?"""
+        for sid, v in idx.submaps.items():
+            held = subs.get(parse_cell_id(sid))
+            if held is None or held.version < v["version"]:
+                return False
+        return True
+
+    def _submap_state(self, sset: SubmapSet, version: int, epoch: int, cur: MapState | None) -> MapState:
+        subs = list(sset.submaps.values())
+        observed = union_observed([s.observed for s in subs], self.bake_config.block)
+        boxes = [s.bounds for s in subs if s.bounds is not None]
+        if boxes:
+            bounds = np.stack([np.min([b[0] for b in boxes], 0), np.max([b[1] for b in boxes], 0)])
+        elif observed is not None:
+            bounds = observed.bounds
+        else:  # the extended boxes of the submaps
+            corners = np.concatenate([sset.grid.corners_W(s.cell, sset.grid.overlap_m) for s in subs])
+            bounds = np.stack([corners.min(0), corners.max(0)])
+        sv, surf = self._surfels if self._surfels else ((0, -1), None)
+        if sv[0] < epoch:  # surfels of an older mapper incarnation: not this map's
+            surf, sv = None, (0, -1)
+        return MapState(version, sum(s.step for s in subs), None, bounds, surf, sv[1], epoch, observed,
+                        submaps=sset)
+
+    def set_index(self, idx: protocol.SubmapIndex) -> list[str] | None:
+        """Take a ``map/index``: the ids of the submaps to get because the index lists them at
+        a newer version than held (a lost sample, a late join), or None when every submap is
+        wanted (no submap map yet, or a newer mapper incarnation). When everything listed is
+        held, the map takes the index's version."""
+        with self._lock:
+            old = self._index
+            if old is None or (idx.epoch, idx.version) >= (old.epoch, old.version):
+                self._index = idx
+            cur = self._state
+            if cur is None or idx.epoch > cur.epoch or (cur.submaps is None and (idx.epoch, idx.version) > cur.order):
+                return None
+            if cur.submaps is None or idx.epoch < cur.epoch:
+                return []
+            subs = cur.submaps.submaps
+            want = [sid for sid, v in idx.submaps.items()
+                    if subs.get(parse_cell_id(sid)) is None or subs[parse_cell_id(sid)].version < v["version"]]
+            if not want and idx.version > cur.version:
+                self._state = MapState(idx.version, cur.step, None, cur.bounds, cur.surfels, cur.surfel_version,
+                                       cur.epoch, cur.observed, submaps=cur.submaps)
+                self._arrivals.append((self._state.order, self._state.received))
+                self._bake_wanted.set()
+        return want
+
     def set_surfels(self, smap: protocol.SurfelMap) -> bool:
         order = (smap.epoch, smap.version)
         if self._surfels is not None and order <= self._surfels[0]:
@@ -156,8 +395,7 @@ class QueryEngine:
             self._surfels = (order, surf)
             cur = self._state
             if cur is not None and cur.epoch <= smap.epoch:
-                self._state = MapState(cur.version, cur.step, cur.net, cur.bounds, surf, smap.version, cur.epoch,
-                                       cur.observed, cur.received)
+                self._state = cur.with_surfels(surf, smap.version)
         self._bake_wanted.set()
         return True
 
@@ -178,7 +416,7 @@ class QueryEngine:
             grad = np.empty((len(pts), 3), np.float32)
 
             def one(i: int) -> None:
-                sdf[i:i + chunk], grad[i:i + chunk] = self._implicit(state.net, pts[i:i + chunk], True)
+                sdf[i:i + chunk], grad[i:i + chunk] = self._field(state, pts[i:i + chunk], True)
 
             starts = range(0, len(pts), chunk)
             if self.bake_threads > 1 and self.device.type == "cpu" and len(starts) > 1:
@@ -202,10 +440,17 @@ class QueryEngine:
         if st is None or st.observed is None:
             return self._baked
         cur = self._baked
-        if cur is not None and cur.state.order == st.order and cur.state.surfel_version == st.surfel_version:
-            return cur
+        if cur is not None and cur.state.same_field(st):
+            # Nothing to evaluate (the index's version moved on): the same bake answers for it.
+            if cur.state.order != st.order or cur.state.surfel_version != st.surfel_version:
+                with self._lock:
+                    if self._baked is cur:
+                        self._baked = BakedMap(st, cur.field)
+            return self._baked
         t = time.perf_counter()
-        fld = bake(self.fused_fn(st), st.observed, self.bake_config)
+        dirty = self._dirty(cur.state, st) if cur is not None else None
+        previous = cur.field if dirty is not None else None
+        fld = bake(self.fused_fn(st), st.observed, self.bake_config, previous=previous, dirty=dirty)
         with self._lock:
             cur = self._baked
             if cur is None or cur.state.order <= st.order:
@@ -213,10 +458,41 @@ class QueryEngine:
         self.bakes += 1
         self.last_bake = {**fld.stats, "wall_s": round(time.perf_counter() - t, 3), "version": st.version,
                           "epoch": st.epoch}
-        log.info("baked map version %d: %d blocks (%d fine), %d evaluations, %.2f s, %.1f MB", st.version,
-                 fld.stats["blocks"], fld.stats["fine_blocks"], fld.stats["evaluations"], self.last_bake["wall_s"],
-                 fld.nbytes / 1e6)
+        log.info("baked map version %d: %d blocks (%d fine), %d evaluations (%d reused), %.2f s, %.1f MB",
+                 st.version, fld.stats["blocks"], fld.stats["fine_blocks"], fld.stats["evaluations"],
+                 fld.stats["reused"], self.last_bake["wall_s"], fld.nbytes / 1e6)
         return self._baked
+
+    def _dirty(self, old: MapState, new: MapState):
+        """Where the fused field of ``new`` may differ from ``old``'s: a function of world points
+        (M, 3) -> (M,) bool, or None when it may differ everywhere (a new network, a new
+        mapper incarnation or grid). The blend at a point depends only on the submaps whose
+        extended boxes hold it; the fused answer only on surfels within ``fuse_radius``."""
+        if (old.submaps is None) != (new.submaps is None) or old.epoch != new.epoch:
+            return None
+        if new.submaps is None:
+            if old.net is not new.net:
+                return None
+            changed, grid, cells = [], None, None
+        else:
+            if not old.submaps.grid.same_as(new.submaps.grid):
+                return None
+            changed, grid, cells = new.submaps.changed_since(old.submaps), new.submaps.grid, set(new.submaps.submaps)
+        boxes = surfel_changes(old.surfels, new.surfels)
+        grow = self.fuse_radius + 0.05
+
+        def dirty(points: np.ndarray) -> np.ndarray:
+            d = in_boxes(points, boxes, grow)
+            if grid is not None:
+                covered = np.zeros(len(points), bool)
+                for idx in assign(grid, cells, points).values():
+                    covered[idx] = True
+                d |= ~covered  # answered by the nearest submap: depends on the whole set
+                for idx in assign(grid, changed, points).values():
+                    d[idx] = True
+            return d
+
+        return dirty
 
     def _lower_priority(self) -> None:
         """Bake with a lower CPU priority (Linux nice is per thread): a mapper or the answers
@@ -290,6 +566,22 @@ class QueryEngine:
             sdf[i:i + len(x)] = f.detach().cpu().numpy()
         return sdf, grad
 
+    def _field(self, state: MapState, pts: np.ndarray, gradient: bool) -> tuple[np.ndarray, np.ndarray | None]:
+        """The map's implicit field: its network, or the blend of its submaps."""
+        if state.submaps is None:
+            return self._implicit(state.net, pts, gradient)
+        sset = state.submaps
+        evaluators = {c: (lambda q, g, net=sm.net: self._implicit(net, q, g)) for c, sm in sset.submaps.items()}
+        pts = np.asarray(pts).reshape(-1, 3)
+        sdf = np.empty(len(pts), np.float32)
+        grad = np.empty((len(pts), 3), np.float32) if gradient else None
+        for i in range(0, len(pts), self.chunk_points):  # bounds blend's per-point bookkeeping
+            f, g, _ = blend(sset.grid, evaluators, pts[i:i + self.chunk_points], gradient)
+            sdf[i:i + len(f)] = f
+            if gradient:
+                grad[i:i + len(f)] = g
+        return sdf, grad
+
     def _explicit(self, surfels: Surfels, pts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         from aisdf.surfel_map import explicit_sdf
 
@@ -302,7 +594,7 @@ class QueryEngine:
             if not has_surfels:
                 raise protocol.ProtocolError("no_map", "no explicit planar map yet (no surfels published)")
             return self._explicit(state.surfels, pts)
-        sdf, grad = self._implicit(state.net, pts, gradient)
+        sdf, grad = self._field(state, pts, gradient)
         if source == "fused" and has_surfels:
             d_e, g_e = self._explicit(state.surfels, pts)
             sdf, grad, _ = fuse(sdf, grad, d_e, g_e, self.fuse_radius)
@@ -344,8 +636,6 @@ class QueryEngine:
                                  baked, state.epoch)
 
     def answer_mesh(self, req: protocol.MeshRequest) -> protocol.MeshReply:
-        from skimage.measure import marching_cubes
-
         state = self._state
         if state is None:
             raise protocol.ProtocolError("no_map", "no map yet: the mapper has not published weights")
@@ -358,10 +648,64 @@ class QueryEngine:
             raise protocol.ProtocolError(
                 "too_large", f"resolution {res} m needs a {n[0]}x{n[1]}x{n[2]} grid, above {self.mesh_max_cells} cells; "
                 "ask for a coarser resolution")
-        axes = [lo[i] + res * np.arange(n[i]) for i in range(3)]
-        grid = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
-        vol = self._implicit(state.net, grid, False)[0].reshape(tuple(n))
-        if not (vol.min() < 0 < vol.max()):
-            return protocol.MeshReply(state.version, np.zeros((0, 3), np.float32), np.zeros((0, 3), np.int32))
-        verts, faces, _, _ = marching_cubes(vol, level=0.0, spacing=(res, res, res))
-        return protocol.MeshReply(state.version, (verts + lo).astype(np.float32), faces.astype(np.int32))
+        verts, faces = tiled_marching_cubes(lambda p: self._field(state, p, False)[0], lo, res, n, self.mesh_tile)
+        return protocol.MeshReply(state.version, verts.astype(np.float32), faces.astype(np.int32))
+
+
+def tiled_marching_cubes(fn, lo: np.ndarray, res: float, n, tile: int = 64) -> tuple[np.ndarray, np.ndarray]:
+    """Marching cubes of the zero level of ``fn`` (points (M, 3) float32 -> (M,)) on the
+    lattice ``lo + res * (i, j, k)``, ``0 <= i < n[0]`` ..., in tiles of at most ``tile``
+    samples per edge: neighbouring tiles share one plane of samples, so every cube is
+    marched once and the vertices on a shared plane come out twice at the same place;
+    those are welded. Memory: one tile's samples (and the mesh), whatever the box.
+    Returns (vertices (V, 3) float64 world, faces (F, 3) int64)."""
+    from skimage.measure import marching_cubes
+
+    n = [int(x) for x in n]
+    starts = [range(0, max(n[a] - 1, 1), tile - 1) for a in range(3)]
+    verts, faces, count = [], [], 0
+    for s0 in starts[0]:
+        for s1 in starts[1]:
+            for s2 in starts[2]:
+                s = np.array([s0, s1, s2])
+                e = np.minimum(s + tile, n)
+                if np.any(e - s < 2):
+                    continue
+                axes = [lo[a] + res * np.arange(s[a], e[a]) for a in range(3)]
+                pts = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3).astype(np.float32)
+                vol = np.asarray(fn(pts), np.float32).reshape(tuple(e - s))
+                del pts
+                if not (vol.min() < 0 < vol.max()):
+                    continue
+                v, f, _, _ = marching_cubes(vol, level=0.0)
+                verts.append(v.astype(np.float64) + s)  # lattice units
+                faces.append(f.astype(np.int64) + count)
+                count += len(v)
+    if not verts:
+        return np.zeros((0, 3)), np.zeros((0, 3), np.int64)
+    V, F = np.concatenate(verts), np.concatenate(faces)
+    # Weld the vertices on shared planes (integer lattice coordinates of a tile border).
+    borders = [np.array([x for x in starts[a] if x > 0]) for a in range(3)]
+    seam = np.zeros(len(V), bool)
+    for a in range(3):
+        if len(borders[a]):
+            near = np.abs(V[:, a, None] - borders[a][None, :]).min(axis=1) < 1e-4
+            seam |= near
+    rep = np.arange(len(V))
+    si = np.flatnonzero(seam)
+    if len(si):
+        from scipy.sparse import coo_matrix
+        from scipy.sparse.csgraph import connected_components
+        from scipy.spatial import cKDTree
+
+        pairs = cKDTree(V[si]).query_pairs(1e-4, output_type="ndarray")
+        if len(pairs):
+            m = len(si)
+            g = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(m, m))
+            ncomp, lab = connected_components(g, directed=False)
+            first = np.full(ncomp, m)
+            np.minimum.at(first, lab, np.arange(m))  # the lowest index of each component
+            rep[si] = si[first[lab]]
+    keep = rep == np.arange(len(V))
+    new_index = np.cumsum(keep) - 1
+    return lo + res * V[keep], new_index[rep[F]]

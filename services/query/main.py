@@ -7,6 +7,12 @@ checked on Zenoh's thread (a malformed one is answered at once) and evaluated on
 (``queue_max``): a request that finds it full is answered at once with ``busy``, so
 under overload latency stays bounded and planners hear about it instead of timing out.
 A background thread bakes every new map (``engine.py``).
+
+Submaps (protocol 1.3): it also follows ``map/submaps/*`` (one WeightSnapshot per changed
+submap) and ``map/index``. A late joiner gets ``map/submaps/**`` (every submap's latest)
+and ``map/index``; when an index lists a submap at a version newer than the one held (a
+lost sample), that submap is fetched with a ``get`` on its key (on the fetcher thread,
+never on Zenoh's). A malformed message is logged and skipped.
 """
 
 from __future__ import annotations
@@ -52,8 +58,61 @@ class QueryNode:
             threading.Thread(target=self._fetch_latest, name="latest", daemon=True),
         ]
         self._decls = []
+        self._want: set[str] = set()  # submap ids to get ("**": all of them)
+        self._want_lock = threading.Lock()
+        self._want_event = threading.Event()
+        self.fetched = 0  # submap snapshots taken from gets (late join, lost samples)
 
     # ------------------------------------------------------------------ map following
+
+    def _on_submap(self, msg: dict, key: str | None = None) -> bool:
+        try:
+            snap = protocol.WeightSnapshot.from_msg(msg)
+            if snap.submap is None:
+                raise ValueError("a message on map/submaps/<id> without 'submap'")
+            sid = snap.submap["id"]
+            last = key.rsplit("/", 1)[-1] if key is not None else None
+            if last is not None and "*" not in last and last != sid:
+                raise ValueError(f"submap {sid!r} published on {key!r}")
+            if self.engine.set_submap(snap):
+                log.debug("submap %s version %d (step %d) loaded", sid, snap.version, snap.step)
+                return True
+        except (protocol.ProtocolError, ValueError, KeyError, TypeError, RuntimeError) as e:
+            log.warning("rejected a submap snapshot: %s", e)
+        return False
+
+    def _on_index(self, msg: dict) -> None:
+        try:
+            idx = protocol.SubmapIndex.from_msg(msg)
+            want = self.engine.set_index(idx)
+        except (protocol.ProtocolError, ValueError, KeyError, TypeError) as e:
+            log.warning("rejected a submap index: %s", e)
+            return
+        if want is None or want:
+            with self._want_lock:
+                self._want.update(["**"] if want is None else want)
+            self._want_event.set()
+
+    def _get_submaps(self, sid: str) -> int:
+        """Get ``map/submaps/<sid>`` (``**``: all); returns how many were taken."""
+        n = 0
+        key = keys.key(self.ns, f"{keys.MAP_SUBMAPS}/{sid}")
+        try:
+            replies = list(self.session.get(key, timeout=self.cfg.submap_get_timeout_s))
+        except Exception as e:  # noqa: BLE001 - a transport failure: try again at the next index
+            log.warning("get %s failed: %s", key, e)
+            return 0
+        for reply in replies:
+            if reply.ok is None:
+                continue
+            try:
+                msg = protocol.unpack(transport.payload_bytes(reply.ok.payload))
+            except protocol.ProtocolError as e:
+                log.warning("malformed reply on %s: %s", key, e.message)
+                continue
+            n += self._on_submap(msg, str(reply.ok.key_expr))
+        self.fetched += n
+        return n
 
     def _on_weights(self, msg: dict) -> None:
         try:
@@ -71,25 +130,44 @@ class QueryNode:
         except (protocol.ProtocolError, ValueError, KeyError) as e:
             log.warning("rejected a surfel map: %s", e)
 
-    def _subscriber(self, name: str, fn):
+    def _subscriber(self, name: str, fn, with_key: bool = False):
         def cb(sample):
             try:
-                fn(protocol.unpack(transport.payload_bytes(sample.payload)))
+                msg = protocol.unpack(transport.payload_bytes(sample.payload))
+                fn(msg, str(sample.key_expr)) if with_key else fn(msg)
             except protocol.ProtocolError as e:
                 log.warning("malformed message on %s: %s", name, e.message)
+            except Exception:  # noqa: BLE001 - a message never stops the service
+                log.exception("error handling a message on %s", name)
 
         return self.session.declare_subscriber(keys.key(self.ns, name), cb)
 
     def _fetch_latest(self) -> None:
-        """Late joiner: get the latest weights and surfels until the first weights arrive."""
-        while not self._stop.is_set():
+        """Late joiner: get the latest weights, surfels, submaps and index until a map
+        arrives; then get the submaps an index says are missing."""
+        while not self._stop.is_set() and self.engine.state is None:
             for name, fn in ((keys.MAP_WEIGHTS, self._on_weights), (keys.MAP_SURFELS, self._on_surfels)):
                 msg = transport.get_latest(self.session, keys.key(self.ns, name), timeout=1.0)
                 if msg is not None:
                     fn(msg)
+            self._get_submaps("**")
+            msg = transport.get_latest(self.session, keys.key(self.ns, keys.MAP_INDEX), timeout=1.0)
+            if msg is not None:
+                self._on_index(msg)
             if self.engine.state is not None:
-                return
+                break
             self._stop.wait(self.cfg.weights_retry_s)
+        while not self._stop.is_set():
+            if not self._want_event.wait(0.5):
+                continue
+            self._want_event.clear()
+            with self._want_lock:
+                want, self._want = self._want, set()
+            for sid in (["**"] if "**" in want or len(want) > 8 else sorted(want)):
+                if self._stop.is_set():
+                    return
+                n = self._get_submaps(sid)
+                log.info("got %d submap snapshot(s) on map/submaps/%s (the index listed newer ones)", n, sid)
 
     # ------------------------------------------------------------------ requests
 
@@ -151,6 +229,8 @@ class QueryNode:
         self._decls = [
             self._subscriber(keys.MAP_WEIGHTS, self._on_weights),
             self._subscriber(keys.MAP_SURFELS, self._on_surfels),
+            self._subscriber(f"{keys.MAP_SUBMAPS}/*", self._on_submap, with_key=True),
+            self._subscriber(keys.MAP_INDEX, self._on_index),
             self.session.declare_queryable(
                 keys.key(self.ns, keys.QUERY_SDF),
                 lambda q: self._accept(q, lambda m: protocol.SdfRequest.from_msg(m, max_pts), self._sdf_jobs)),
@@ -170,7 +250,9 @@ class QueryNode:
                 "baked_version": bk.state.version if bk else None, "bakes": self.engine.bakes,
                 "bake_failures": self.engine.bake_failures, "last_bake": self.engine.last_bake,
                 "lag": self.engine.lag(), "answered": self.answered, "errors": self.errors, "busy": self.busy,
-                "queued": self._sdf_jobs.qsize()}
+                "queued": self._sdf_jobs.qsize(),
+                "submaps": len(st.submaps.submaps) if st is not None and st.submaps is not None else None,
+                "fetched": self.fetched}
 
     def stop(self) -> None:
         self._stop.set()

@@ -41,6 +41,19 @@ smoothstep), so the whole field is C^1 across level borders too:
 
 Points outside every baked block are reported as not covered; the caller answers them
 another way (the query service: the network).
+
+Re-baking what changed (submaps, issue 7)
+-----------------------------------------
+``bake(..., previous=old, dirty=fn)`` bakes a new field reusing the samples of an older
+bake on the same lattice (same block and fine spacing, origins a whole number of blocks
+apart) wherever ``dirty(points)`` says the field cannot have changed: coarse corners,
+block centres (kept in ``centres``) and fine lattice points are copied, only the rest is
+evaluated. The layout (which blocks, which are refined, the blend weights) is recomputed
+from the values as in a full bake, so the result equals a full bake of the new field
+whenever ``dirty`` is right (a sample is reused only where the old and new fields agree).
+The query service passes the union of the extended boxes of the submaps that changed and
+the surroundings of the surfels that changed: the evaluations follow what changed, not
+the size of the building.
 """
 
 from __future__ import annotations
@@ -204,7 +217,7 @@ else:  # pragma: no cover
 class BakedField:
     """Arrays of a bake and the vectorised lookup. Immutable once built."""
 
-    def __init__(self, origin, block, state, C, fidx, A, F, nf, stats=None):
+    def __init__(self, origin, block, state, C, fidx, A, F, nf, stats=None, centres=None):
         self.origin = np.asarray(origin, np.float64)
         self.block = float(block)
         self.state = state  # (nbx, nby, nbz) int8: 0 = not baked, 1 = coarse, 2 = coarse + fine
@@ -214,10 +227,12 @@ class BakedField:
         self.F = F  # (n_fine, nf+1, nf+1, nf+1, 4) float32
         self.nf = int(nf)
         self.stats = stats or {}
+        self.centres = centres  # (nbx, nby, nbz, 4) float32 field at the block centres (NaN: none), or None
 
     @property
     def nbytes(self) -> int:
-        return int(sum(a.nbytes for a in (self.state, self.C, self.fidx, self.A, self.F)))
+        arrays = (self.state, self.C, self.fidx, self.A, self.F) + ((self.centres,) if self.centres is not None else ())
+        return int(sum(a.nbytes for a in arrays))
 
     def query(self, points: np.ndarray, gradient: bool = True) -> tuple[np.ndarray, np.ndarray | None, np.ndarray]:
         """(sdf (N,) float32, gradient (N, 3) float32 or None, covered (N,) bool); values of
@@ -241,14 +256,43 @@ def _dilate26(mask: np.ndarray) -> np.ndarray:
     return binary_dilation(mask, structure=np.ones((3, 3, 3), bool))
 
 
-def bake(fn, observed, cfg: BakeConfig | None = None) -> BakedField:
+def _lattice_offset(previous: "BakedField | None", origin: np.ndarray, B: float, nf: int) -> np.ndarray | None:
+    """Integer block offset of ``origin`` in ``previous``'s lattice, or None when the two
+    lattices differ (then nothing is reused)."""
+    if previous is None or previous.centres is None or previous.nf != nf or abs(previous.block - B) > 1e-9 * B:
+        return None
+    off = (origin - previous.origin) / B
+    r = np.round(off)
+    if np.abs(off - r).max() > 1e-6:
+        return None
+    return r.astype(np.int64)
+
+
+def _take(arr: np.ndarray, idx: np.ndarray) -> np.ndarray:
+    """arr[idx] for integer index rows (M, k) into arr's first k axes; NaN rows where out of range."""
+    k = idx.shape[1]
+    out = np.full((len(idx),) + arr.shape[k:], np.nan, np.float32)
+    ok = np.all((idx >= 0) & (idx < np.array(arr.shape[:k])), axis=1)
+    if ok.any():
+        out[ok] = arr[tuple(idx[ok].T)]
+    return out
+
+
+def bake(fn, observed, cfg: BakeConfig | None = None, previous: BakedField | None = None,
+         dirty=None) -> BakedField:
     """Bake ``fn`` (points (M, 3) float32 -> (sdf (M,), grad (M, 3)); called with all the
     points of a stage at once, it bounds its own memory) over the observed
-    space ``observed`` (an :class:`aisdf.observed.ObservedGrid`), coarse to fine."""
+    space ``observed`` (an :class:`aisdf.observed.ObservedGrid`), coarse to fine.
+
+    With ``previous`` (an older bake on the same lattice) samples of it are reused where
+    ``dirty`` (world points (M, 3) float64 -> (M,) bool, True where the field may differ
+    from the one ``previous`` baked; None = nowhere) is False."""
     cfg = cfg or BakeConfig()
     t0 = time.perf_counter()
     B, nf = float(cfg.block), int(cfg.fine)
     origin = observed.origin.copy()
+    off = _lattice_offset(previous, origin, B, nf)
+    reused = 0
     extent = observed.voxel * np.array(observed.occ.shape)
     nb = np.maximum(np.ceil(extent / B - 1e-9).astype(np.int64), 1)
     # Blocks holding an observed voxel (voxel centres, so a voxel belongs to one block).
@@ -259,14 +303,23 @@ def bake(fn, observed, cfg: BakeConfig | None = None) -> BakedField:
     blocks = np.argwhere(state > 0)
     evals = 0
 
-    def evaluate(pts: np.ndarray) -> np.ndarray:
-        nonlocal evals
+    def evaluate(pts: np.ndarray, old: np.ndarray | None = None) -> np.ndarray:
+        """The field at ``pts``; ``old`` (M, 4) the previous bake's samples there (NaN: none)."""
+        nonlocal evals, reused
         out = np.empty((len(pts), 4), np.float32)
-        if len(pts):
-            f, g = fn(pts.astype(np.float32))  # fn chunks its own work (memory)
-            out[:, 0] = f
-            out[:, 1:] = g
-        evals += len(pts)
+        todo = np.ones(len(pts), bool)
+        if old is not None and len(pts):
+            todo = ~np.isfinite(old).all(axis=1)
+            if dirty is not None and (~todo).any():
+                todo[~todo] = np.asarray(dirty(pts[~todo]), bool)
+            out[~todo] = old[~todo]
+            reused += int((~todo).sum())
+        n = int(todo.sum())
+        if n:
+            f, g = fn(pts[todo].astype(np.float32))  # fn chunks its own work (memory)
+            out[todo, 0] = f
+            out[todo, 1:] = g
+        evals += n
         return out
 
     # Coarse level: the corners of every baked block.
@@ -275,7 +328,8 @@ def bake(fn, observed, cfg: BakeConfig | None = None) -> BakedField:
         corner_mask[blocks[:, 0] + a, blocks[:, 1] + b, blocks[:, 2] + c] = True
     corners = np.argwhere(corner_mask)
     C = np.full(tuple(nb + 1) + (4,), np.nan, np.float32)
-    C[corners[:, 0], corners[:, 1], corners[:, 2]] = evaluate(origin + corners * B)
+    C[corners[:, 0], corners[:, 1], corners[:, 2]] = evaluate(
+        origin + corners * B, None if off is None else _take(previous.C, corners + off))
     t_coarse = time.perf_counter() - t0
     # Core blocks: a surface may pass within band of them.
     absf = np.abs(C[..., 0])
@@ -290,7 +344,9 @@ def bake(fn, observed, cfg: BakeConfig | None = None) -> BakedField:
     coarse_only = BakedField(origin, B, (state > 0).astype(np.int8), C, no_fine, np.zeros(tuple(nb + 1), np.float32),
                              np.zeros((0, nf + 1, nf + 1, nf + 1, 4), np.float32), nf)
     centres = origin + (blocks + 0.5) * B
-    centre_vals = evaluate(centres)
+    centre_vals = evaluate(centres, None if off is None else _take(previous.centres, blocks + off))
+    M = np.full(tuple(nb) + (4,), np.nan, np.float32)
+    M[blocks[:, 0], blocks[:, 1], blocks[:, 2]] = centre_vals
     pred = coarse_only.query(centres, gradient=False)[0]
     bent = np.zeros(tuple(nb), bool)
     bent[blocks[:, 0], blocks[:, 1], blocks[:, 2]] = np.abs(pred - centre_vals[:, 0]) > cfg.tol
@@ -328,12 +384,28 @@ def bake(fn, observed, cfg: BakeConfig | None = None) -> BakedField:
             hit = (pos < len(ukey)) & (ukey[np.minimum(pos, len(ukey) - 1)] == ckey)
             vals[pos[hit]] = centre_vals[hit]
             todo[pos[hit]] = False
-        vals[todo] = evaluate(origin + np.stack([ux[todo], uy[todo], uz[todo]], -1) * (B / nf))
+        ulat = np.stack([ux[todo], uy[todo], uz[todo]], -1)
+        old = None
+        if off is not None:  # the same lattice point in any refined block of the previous bake
+            old = np.full((len(ulat), 4), np.nan, np.float32)
+            plat = ulat + off * nf
+            for d in _CORNERS:
+                d = np.asarray(d)
+                blk = plat // nf - d
+                loc = plat - blk * nf
+                ok = np.all((loc >= 0) & (loc <= nf), axis=1) & ~np.isfinite(old).all(axis=1)
+                ok &= np.all((blk >= 0) & (blk < np.array(previous.fidx.shape)), axis=1)
+                fi = np.full(len(blk), -1, np.int64)
+                fi[ok] = previous.fidx[tuple(blk[ok].T)]
+                ok &= fi >= 0
+                if ok.any():
+                    old[ok] = previous.F[fi[ok], loc[ok, 0], loc[ok, 1], loc[ok, 2]]
+        vals[todo] = evaluate(origin + ulat * (B / nf), old)
         F[...] = vals[inv.reshape(-1)].reshape(F.shape)
     stats = {"blocks": int(len(blocks)), "fine_blocks": int(len(fblocks)), "core_blocks": int(core.sum()),
              "bent_blocks": int((bent & (state > 0)).sum()), "near_blocks": int((near & (state > 0)).sum()),
-             "evaluations": int(evals), "coarse_s": round(t_coarse, 3),
+             "evaluations": int(evals), "reused": int(reused), "coarse_s": round(t_coarse, 3),
              "bake_s": round(time.perf_counter() - t0, 3)}
-    field = BakedField(origin, B, state, C, fidx, A, F, nf, stats)
+    field = BakedField(origin, B, state, C, fidx, A, F, nf, stats, centres=M)
     field.stats["bytes"] = field.nbytes
     return field
