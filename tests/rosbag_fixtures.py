@@ -275,13 +275,16 @@ def write_bag(path, source, fmt: str = "mcap", *, encoding: str = "16UC1", T_map
               tf_hz: float = 50.0, tf_phase_s: float = 0.0071, tf_at_images: bool = False,
               optical_rotation: bool = True, tf_first_frame: int = 0, tf_last_frame: int | None = None,
               odom_topic: bool = False, big_endian: bool = False, row_pad: int = 0, max_frames: int | None = None,
-              stride: int = 1, start_ns: int = START_NS, no_static: bool = False) -> WrittenBag:
+              stride: int = 1, start_ns: int = START_NS, no_static: bool = False,
+              second_camera: bool = False) -> WrittenBag:
     """Record ``source`` (frames ``0, stride, ...``, at most ``max_frames``) into ``path``.
 
     ``tf_first_frame``/``tf_last_frame``: odom -> base_link samples exist only from just after
     the image before ``tf_first_frame`` to just before the image after ``tf_last_frame``
     (recorded frames' indices): the images outside cannot be placed (stamp outside the TF
-    buffer). ``no_static``: no ``/tf_static`` at all (every frame misses a transform)."""
+    buffer). ``no_static``: no ``/tf_static`` at all (every frame misses a transform).
+    ``second_camera``: the same depth also on ``/camera/aligned_depth_to_color/image_raw`` with
+    its own camera info (two depth topics: discovery must ask which)."""
     if fmt not in FORMATS:
         raise ValueError(f"format {fmt!r}: one of {FORMATS}")
     if encoding not in ENCODINGS:
@@ -353,6 +356,11 @@ def write_bag(path, source, fmt: str = "mcap", *, encoding: str = "16UC1", T_map
         out.put(t_ns + 4_000_000, INFO_TOPIC, "sensor_msgs/msg/CameraInfo",
                 msgs.camera_info(t_ns, f["K"], *depth.shape))
         pending_image = (t_ns + 3_000_000, depth_topic, msgtype, msg)
+        if second_camera:
+            ns2 = "/camera/aligned_depth_to_color"
+            out.put(t_ns + 3_500_000, ns2 + "/image_raw", *msgs.depth(t_ns, depth, encoding, big_endian, row_pad))
+            out.put(t_ns + 4_500_000, ns2 + "/camera_info", "sensor_msgs/msg/CameraInfo",
+                    msgs.camera_info(t_ns, f["K"], *depth.shape))
         out.flush(t_ns)
         wb.stamps.append(t_ns * 1e-9)
         wb.image_stamps_ns.append(t_ns)

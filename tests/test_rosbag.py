@@ -289,6 +289,19 @@ def test_pose_topic_with_camera_extrinsic(tmp_path, office):
         RosbagSource(wb.path, depth_topic="/nope")
 
 
+def test_discovery_asks_when_there_is_no_obvious_choice(tmp_path, office):
+    wb = _write(tmp_path, office, "sqlite3", "two", second_camera=True, max_frames=10)
+    with pytest.raises(ValueError, match=r"several depth image topics \(/camera/aligned_depth_to_color/image_raw, "
+                       r"/camera/depth/image_rect_raw\); name one with --depth-topic"):
+        RosbagSource(wb.path)
+    for depth, info in ((rf.DEPTH_TOPIC, rf.INFO_TOPIC), ("/camera/aligned_depth_to_color/image_raw",
+                                                          "/camera/aligned_depth_to_color/camera_info")):
+        with RosbagSource(wb.path, depth_topic=depth) as src:  # the camera info beside it is found
+            assert src.info_topic == info and len(src) == 10
+    with pytest.raises(ValueError, match="camera info topic '/tf'"):
+        RosbagSource(wb.path, depth_topic=rf.DEPTH_TOPIC, info_topic="/tf")
+
+
 def test_wrong_chain_is_detected_in_words(tmp_path, office):
     wb = _write(tmp_path, office, "mcap", "wrong", optical_rotation=False)
     with RosbagSource(wb.path) as src:
