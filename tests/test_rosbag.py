@@ -218,6 +218,12 @@ def test_synthetic_bag_frames_equal_the_source(tmp_path, office, fmt):
         frames = [src.frame(i) for i in range(len(src))]
     for k, f in enumerate(frames):
         np.testing.assert_allclose(f["T_WC"], wb.T_WC[k], atol=1e-6)
+    if fmt != "ros1":  # the storage file alone (a .db3 or .mcap without its folder's metadata.yaml)
+        single = tmp_path / f"alone.{'db3' if fmt == 'sqlite3' else fmt}"
+        next(wb.path.glob(f"*{single.suffix}")).rename(single)
+        with RosbagSource(single) as alone:
+            np.testing.assert_array_equal(alone.frame(len(alone) - 1)["depth"], frames[-1]["depth"])
+            assert len(alone) == len(office) and alone.storage.startswith("rosbag2")
     # the same keyframes as the source in the map frame
     in_map = [dict(g, T_WC=wb.T_WC[k]) for k, g in enumerate(src_frames)]
     assert selected(frames) == selected(in_map) and len(selected(frames)) > 3
