@@ -55,7 +55,9 @@ class Stack:
         return ZenohOptions(mode="peer", connect=self.endpoints, multicast_scouting=False)
 
     def command(self, name: str) -> list[str]:
-        cmd = [sys.executable, "-m", SERVICES[name], "--namespace", self.namespace, "--no-multicast-scouting",
+        # a second instance of a service is named with a number: "frontend2" (a second robot)
+        module = SERVICES.get(name) or SERVICES[name.rstrip("0123456789")]
+        cmd = [sys.executable, "-m", module, "--namespace", self.namespace, "--no-multicast-scouting",
                "--listen", endpoint(self.ports[name])]
         for other, port in self.ports.items():
             if other != name:

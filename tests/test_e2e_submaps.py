@@ -1,0 +1,123 @@
+"""End to end, protocol 1.3: a submap mapper publishes only the submaps that changed, late
+joiners get every submap, a restarted mapper resumes every submap from its checkpoint, and
+two robots (two front ends with their own sensor names) build one map in one namespace.
+Real processes over real Zenoh on loopback (explicit endpoints, multicast scouting off)."""
+
+import threading
+import time
+
+import pytest
+import zenoh
+
+from aisdf import keys, protocol, transport
+from aisdf.stack import Stack, wait_for
+
+pytestmark = pytest.mark.e2e
+NS = "aisdf/e2e13"
+MAPPER = ["--preset", "cpu", "--submaps", "--set", "training.network.width=32", "--set", "submap.cell_m=3",
+          "--set", "log_level=INFO"]
+
+
+def frontend_args(n_frames, sensor="depth", start=0, max_frames=None):
+    a = ["--set", f"n_frames={n_frames}", "--set", "width=80", "--set", "height=60", "--set", "linger=true",
+         "--set", f"sensor={sensor}", "--set", f"start={start}", "--fast"]
+    return a + (["--set", f"max_frames={max_frames}"] if max_frames else [])
+
+
+def info(session, name):
+    return transport.get_latest(session, keys.key(NS, f"info/{name}"), 2.0)
+
+
+def get_all(session, key, timeout=5.0) -> dict[str, bytes]:
+    out = {}
+    for r in session.get(key, timeout=timeout):
+        if r.ok is not None:
+            out[str(r.ok.key_expr)] = transport.payload_bytes(r.ok.payload)
+    return out
+
+
+def index(session) -> protocol.SubmapIndex | None:
+    got = get_all(session, keys.key(NS, keys.MAP_INDEX))
+    return protocol.SubmapIndex.from_msg(protocol.unpack(next(iter(got.values())))) if got else None
+
+
+def test_only_changed_submaps_go_out_late_joiners_get_all_and_a_restart_resumes_every_submap(tmp_path):
+    args = MAPPER + ["--checkpoint-dir", str(tmp_path)]
+    st = Stack(services=("mapper", "frontend"), namespace=NS, args={"mapper": args, "frontend": frontend_args(600)})
+    puts: list[tuple[int, str]] = []  # (map version, submap id) of every submap put
+    lock = threading.Lock()
+
+    def on_submap(sample):
+        snap = protocol.WeightSnapshot.from_msg(protocol.unpack(transport.payload_bytes(sample.payload)))
+        with lock:
+            puts.append((snap.version, snap.submap["id"]))
+
+    try:
+        st.start()
+        with transport.open_session(st.client_zenoh) as s:
+            sub = s.declare_subscriber(keys.key(NS, keys.MAP_SUBMAPS) + "/*", on_submap)
+            wait_for(lambda: (lambda f: f and f["done"] and f["pending"] == 0)(info(s, "frontend")), 180,
+                     what="every keyframe acknowledged")
+            time.sleep(4.0)
+            sub.undeclare()
+            idx = wait_for(lambda: index(s), 30, what="map/index")
+            n = len(idx.submaps)
+            assert n >= 3, f"the office walk should make several 3 m submaps, got {n}"
+            with lock:
+                per_version: dict[int, set] = {}
+                for v, sid in puts:
+                    per_version.setdefault(v, set()).add(sid)
+            sizes = [len(x) for x in per_version.values()]
+            print(f"{n} submaps; submaps per publication: mean {sum(sizes) / len(sizes):.2f}, max {max(sizes)}")
+            assert max(sizes) < n  # never the whole map: only what was trained since the last period
+            # a late joiner gets every submap, each on its own key, at the version the index says
+            got = get_all(s, keys.key(NS, keys.MAP_SUBMAPS) + "/**")
+            snaps = {k.rsplit("/", 1)[1]: protocol.WeightSnapshot.from_msg(protocol.unpack(v)) for k, v in got.items()}
+            assert set(snaps) == set(idx.submaps)
+            idx2 = index(s)
+            for sid, snap in snaps.items():
+                assert snap.submap["id"] == sid and snap.epoch == idx2.epoch
+                assert snap.version <= idx2.version
+            one = next(iter(snaps))
+            assert set(get_all(s, keys.key(NS, f"{keys.MAP_SUBMAPS}/{one}"))) == {keys.key(NS, f"{keys.MAP_SUBMAPS}/{one}")}
+            before = info(s, "mapper")
+            assert st.stop_one("mapper") == 0  # clean stop: the checkpoint holds every submap
+            st.start(["mapper"])
+            idx3 = wait_for(lambda: (lambda i: i if i and i.epoch > idx2.epoch else None)(index(s)), 90,
+                            what="the resumed mapper's index")
+            assert set(idx3.submaps) == set(idx2.submaps)
+            assert all(idx3.submaps[k]["step"] >= idx2.submaps[k]["step"] for k in idx2.submaps)
+            after = wait_for(lambda: info(s, "mapper"), 30, what="the resumed mapper")
+            assert after["keyframes"] == before["keyframes"] and after["steps"] >= before["steps"]
+    finally:
+        st.stop()
+
+
+def test_two_robots_build_one_map_in_one_namespace():
+    n = 600
+    st = Stack(services=("mapper", "frontend", "frontend2"), namespace=NS,
+               args={"mapper": MAPPER, "frontend": frontend_args(n, "robot1", 0, n // 2),
+                     "frontend2": frontend_args(n, "robot2", n // 2)})
+    try:
+        st.start()
+        with transport.open_session(st.client_zenoh) as s:
+            def settled():
+                mi = info(s, "mapper")
+                if not mi or mi["pending"]:
+                    return None
+                fronts = []
+                for r in s.get(keys.key(NS, "info/frontend"), target=zenoh.QueryTarget.ALL,
+                                   consolidation=zenoh.ConsolidationMode.NONE, timeout=2.0):
+                    if r.ok is not None:
+                        fronts.append(protocol.unpack(transport.payload_bytes(r.ok.payload)))
+                if len(fronts) == 2 and all(f["done"] and f["pending"] == 0 for f in fronts):
+                    return mi, fronts
+                return None
+
+            mi, fronts = wait_for(settled, 180, what="both robots' keyframes acknowledged")
+            total = sum(f["keyframes"] for f in fronts)
+            print(f"robot keyframes {[f['keyframes'] for f in fronts]}, map {mi['keyframes']}")
+            assert all(f["keyframes"] > 3 and f["acked"] == f["keyframes"] and f["rejected"] == 0 for f in fronts)
+            assert mi["keyframes"] == total  # same frame ids from two sensors: both kept
+    finally:
+        st.stop()
