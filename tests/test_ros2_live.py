@@ -116,6 +116,46 @@ def test_attachment_is_zenoh_ext_serialization_of_seq_stamp_gid():
     assert rz.entity_gid("x") == rz.entity_gid("x") != rz.entity_gid("y") and len(rz.entity_gid("x")) == 16
 
 
+def test_replay_messages_through_the_assembler_give_back_the_synthetic_frames():
+    """The robot's messages (CDR round trip) fed to the FrameAssembler in stamp order give the
+    sequence's frames: same depth and K, T_WC through map->odom->base_link->camera_link->optical."""
+    from aisdf.ros import replay
+    from aisdf.ros.assemble import FrameAssembler
+    from aisdf.synthetic import SyntheticSequence
+
+    seq = SyntheticSequence(n_frames=30, H=30, W=40)
+    ts = rz.open_typestore("jazzy")
+    m = replay.Messages(ts)
+    t0 = 1_700_000_000_123_456_789
+    TF = "tf2_msgs/msg/TFMessage"
+
+    def cdr(msg, t):
+        return ts.deserialize_cdr(ts.serialize_cdr(msg, t), t)
+
+    asm = FrameAssembler(replay.DEPTH_TOPIC, replay.INFO_TOPIC, "map")
+    static = m.tf([m.transform(t0, "base_link", "camera_link", replay.T_BASE_CAMERA_LINK),
+                   m.transform(t0, "camera_link", replay.OPTICAL_FRAME, replay.T_CAMERA_LINK_OPTICAL)])
+    out = asm.feed("/tf_static", TF, t0, cdr(static, TF))
+    events = replay.synthetic_events(seq, t0)
+    assert sum(k == "image" for _, k, _ in events) == 30 and sum(k == "tf" for _, k, _ in events) > 60
+    for stamp, kind, payload in events:
+        if kind == "tf":
+            out += asm.feed("/tf", TF, stamp, cdr(m.tf([m.transform(stamp, *p) for p in payload]), TF))
+        else:
+            f = seq.frame(payload)
+            out += asm.feed(replay.INFO_TOPIC, "sensor_msgs/msg/CameraInfo", stamp,
+                            cdr(m.camera_info(stamp, f["K"], 30, 40), "sensor_msgs/msg/CameraInfo"))
+            out += asm.feed(replay.DEPTH_TOPIC, "sensor_msgs/msg/Image", stamp,
+                            cdr(m.depth_image(stamp, f["depth"]), "sensor_msgs/msg/Image"))
+    out += asm.flush()
+    assert [f["frame_id"] for f in out] == list(range(30)) and asm.counts["skipped"] == 0
+    for f in out:
+        g = seq.frame(f["frame_id"])
+        assert np.array_equal(f["depth"], g["depth"]) and np.array_equal(f["K"], g["K"])
+        assert np.abs(f["T_WC"] - g["T_WC"]).max() < 1e-12
+        assert abs((f["stamp"] - t0 * 1e-9) - g["stamp"]) < 1e-6
+
+
 # ----------------------------------------------------------------------------- over Zenoh, in-process
 
 
