@@ -261,8 +261,9 @@ def main(argv: list[str] | None = None) -> int:
     for k in res:
         same[k] = trained_error(res[k]["keyframes"], pts, gt, a.steps_first, a.steps_per, seed=a.seed)
     ratio = same["ros2"][0] / same["synthetic"][0]
-    print(f"same training ({same['synthetic'][1]} steps, seed {a.seed}): protocol v1 {100 * same['synthetic'][0]:.2f} cm, "
-          f"ROS 2 {100 * same['ros2'][0]:.2f} cm: ratio {ratio:.3f} ({'within' if ratio <= 1.1 else 'NOT within'} 1.1x)")
+    verdict = "within" if ratio <= 1.1 else "NOT within"
+    print(f"same training ({same['synthetic'][1]} steps, seed {a.seed}): protocol v1 "
+          f"{100 * same['synthetic'][0]:.2f} cm, ROS 2 {100 * same['ros2'][0]:.2f} cm: ratio {ratio:.3f} ({verdict} 1.1x)")
     print(f"[{time.monotonic() - t0:6.1f} s] done")
     if a.json:
         Path(a.json).write_text(json.dumps({"compare": {k: v for k, v in cmp.items() if not k.startswith("ids")},

@@ -243,7 +243,8 @@ def test_live_ros2_robot_maps_like_the_protocol_v1_frontend(tmp_path):
     assert src["topics"]["depth"]["malformed"] == 1 and src["topics"]["tf_static"]["received"] >= 1
     ref = cmp.reference_keyframes(n, W, H)
     c = cmp.compare_keyframes(ref, r["keyframes"])
-    print("keyframes: protocol v1", c["ids_a"], "ROS 2", c["ids_b"], {k: c.get(k) for k in ("depth", "K", "T_WC", "stamp")})
+    print("keyframes: protocol v1", c["ids_a"], "ROS 2", c["ids_b"],
+          {k: c.get(k) for k in ("depth", "K", "T_WC", "stamp")})
     assert c["same_ids"] and len(ref) >= 3
     assert c["depth"] == 0.0 and c["K"] == 0.0 and c["T_WC"] < 1e-9 and c["stamp"] < 1e-5
     assert fi["keyframes"] == fi["acked"] == mi["keyframes"] == len(ref)
@@ -300,7 +301,8 @@ def test_live_source_waits_for_its_robot_and_ends_on_sigterm():
 
     ns = "aisdf/ros2term"
     st = Stack(services=("frontend",), namespace=ns,
-               args={"frontend": ["--source", "ros2", "--ros-connect", endpoint(free_port()), "--set", "reliable=false"]})
+               args={"frontend": ["--source", "ros2", "--ros-connect", endpoint(free_port()),
+                                  "--set", "reliable=false"]})
     try:
         st.start()
         with transport.open_session(st.client_zenoh) as s:

@@ -240,7 +240,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--connect", action="append", metavar="ENDPOINT",
                    help=f"Zenoh router of the ROS 2 network (repeatable; default {rz.DEFAULT_ROUTER})")
     p.add_argument("--zenoh-config", metavar="FILE", help="Zenoh session configuration (as ZENOH_SESSION_CONFIG_URI)")
-    p.add_argument("--domain-id", type=int, default=rz.domain_from_env(), help="ROS_DOMAIN_ID (default $ROS_DOMAIN_ID or 0)")
+    p.add_argument("--domain-id", type=int, default=rz.domain_from_env(),
+                   help="ROS_DOMAIN_ID (default $ROS_DOMAIN_ID or 0)")
     p.add_argument("--distro", default="jazzy", choices=sorted(rz.TYPESTORES),
                    help="message definitions and key form (humble: TypeHashNotSupported)")
     p.add_argument("--bag", help="replay this recording instead of the synthetic robot")
