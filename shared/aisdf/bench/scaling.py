@@ -390,7 +390,7 @@ def run(cfg: ScalingConfig) -> dict:
     unknown = [m for m in cfg.methods if m not in METHODS]
     if unknown:
         raise SystemExit(f"unknown method(s) {unknown}; known: {', '.join(METHODS)}")
-    say = print if cfg.progress else (lambda s: None)
+    say = (lambda s: print(s, flush=True)) if cfg.progress else (lambda s: None)
     training = deep_merge(cfg.training, {"seed": cfg.seed})
     res: dict[str, Any] = {"config": cfg.model_dump(mode="json"), "scenes": list(cfg.scenes),
                            "methods": list(cfg.methods), "machine": _machine(cfg.threads), "runs": {},
