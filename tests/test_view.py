@@ -189,3 +189,42 @@ def test_view_without_rerun_fails_clearly(tmp_path):
                        capture_output=True, text=True, timeout=60, env=env)
     assert r.returncode == 1 and "pip install 'aisdf[viewer]'" in r.stderr, r.stderr
     assert not (tmp_path / "x.rrd").exists()
+
+
+def test_box_rotations_take_the_box_axes_to_the_surfel_axes():
+    from scipy.spatial.transform import Rotation
+
+    from aisdf.viewer import box_quaternions, vertex_normals
+
+    rng = np.random.default_rng(0)
+    R = Rotation.random(50, random_state=1).as_matrix()
+    a1, a2 = R[:, :, 0] * rng.uniform(0.5, 2, (50, 1)), R[:, :, 1]  # axis1 need not be unit
+    got = Rotation.from_quat(box_quaternions(a1, a2)).as_matrix()
+    np.testing.assert_allclose(got, R, atol=1e-9)
+    # A unit square in z = 0, two triangles: every vertex normal is +z.
+    v = np.array([[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0]], np.float32)
+    np.testing.assert_allclose(vertex_normals(v, np.array([[0, 1, 2], [0, 2, 3]])), [[0, 0, 1]] * 4, atol=1e-6)
+
+
+def test_map_view_colours_surfels_by_atlanta_direction(tmp_path):
+    from aisdf.viewer import MapView
+
+    rec = rr.RecordingStream("aisdf-test")
+    rec.save(str(tmp_path / "v.rrd"))
+    view = MapView(rec)
+    sf = protocol.SurfelMap.empty_surfels()
+    n = 4
+    sf.update(center=np.zeros((n, 3), np.float32), normal=np.tile([0, 0, 1], (n, 1)).astype(np.float32),
+              axis1=np.tile([1, 0, 0], (n, 1)).astype(np.float32), axis2=np.tile([0, 1, 0], (n, 1)).astype(np.float32),
+              extent=np.ones((n, 2), np.float32), direction=np.array([-1, 0, 1, 7], np.int32),
+              keyframe=np.arange(n, dtype=np.int64))
+    horizontal = np.array([[1.0, 0, 0], [0.6, 0.8, 0]])
+    assert view.surfel_map(protocol.SurfelMap(3, 0.0, np.array([0, 0, 1.0]), horizontal, sf, epoch=2))
+    assert not view.surfel_map(protocol.SurfelMap(9, 0.0, np.array([0, 0, 1.0]), horizontal, sf, epoch=1))  # older
+    rec.flush()
+    rec.disconnect()
+    got = read_recording(tmp_path / "v.rrd")
+    # vertical -> 0, horizontal k -> k + 1, a label outside the frame -> M + 1.
+    assert rows(got["/world/surfels"], "Boxes3D:class_ids") == [[0, 1, 2, 3]]
+    assert rows(got["/world/surfels"], "Boxes3D:half_sizes")[0][0] == pytest.approx([0.5, 0.5, 0.005])
+    assert rows(got["/world/atlanta"], "Arrows3D:class_ids") == [[0, 1, 2]]
