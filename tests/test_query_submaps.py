@@ -20,6 +20,7 @@ import torch
 
 import stranger_client as sc
 from aisdf import protocol
+from aisdf.metrics import eval_points
 from aisdf.network import NetworkConfig, SDFNetwork, build_model, load_numpy_state, model_spec, state_to_numpy
 from aisdf.observed import ObservedGrid, ObservedSpace
 from aisdf.stack import Stack, wait_for
@@ -284,6 +285,37 @@ def test_bake_reevaluates_only_what_changed_and_equals_a_full_bake(submap_map):
     assert bk.field is third and bk.state.version == 9
 
 
+def test_answers_equal_the_submap_mappers_own_blend():
+    """The mapper's SubmapPipeline and the query engine fed its messages answer the same."""
+    from aisdf.mapping.frames import Frame
+    from aisdf.submaps.pipeline import SubmapPipeline
+
+    seq = SyntheticSequence(building="office", n_frames=300, H=60, W=80, seed=0)
+    p = SubmapPipeline.from_settings("cpu", {"network": {"width": 32}, "n_rays": 20}, submaps={"cell_m": 3})
+    frames = []
+    for i in range(0, 300, 50):
+        f = seq.frame(i)
+        frames.append(f)
+        p.add_keyframe(Frame(f["frame_id"], f["stamp"], f["depth"], f["K"], f["T_WC"]))
+        p.step()
+    assert len(p.submaps) >= 2
+    e = QueryEngine(device="cpu")
+    for key, data in p.map_messages(5, changed_only=False, epoch=3):
+        msg = protocol.unpack(data)
+        if key.startswith("map/submaps/"):
+            assert e.set_submap(protocol.WeightSnapshot.from_msg(msg))
+        elif key == "map/index":
+            assert e.set_index(protocol.SubmapIndex.from_msg(msg)) == []
+        elif key == "map/surfels":
+            e.set_surfels(protocol.SurfelMap.from_msg(msg))
+    pts = eval_points(frames, n_points=3000, every=1, rng=0)
+    f_ref, g_ref = p.sdf_grad(pts)
+    rep = e.answer_sdf(protocol.SdfRequest(pts, gradient=True, source="implicit"))
+    assert (rep.map_epoch, rep.map_version) == (3, 5)
+    np.testing.assert_allclose(rep.sdf, f_ref, atol=1e-5)
+    np.testing.assert_allclose(rep.gradient, g_ref, atol=1e-4)
+
+
 def test_submap_ordering_epochs_and_bad_snapshots(submap_map):
     m = submap_map
     e = engine_of(m)
@@ -504,5 +536,88 @@ def test_e2e_lost_submap_sample_late_joiner_and_malformed_messages(submap_map):
             np.testing.assert_allclose(sc.unarr(msg3["sdf"]), want.sdf, atol=1e-5)
             qa.undeclare()
             qi.undeclare()
+        finally:
+            s.close()
+
+
+def test_e2e_real_submap_mapper_answers_planners(tmp_path):
+    """The real mapper with ``--submaps`` (protocol 1.3) and the real frontend and query
+    service: the query service holds every submap the index lists, answers planners from
+    the baked blend of them, and its answers equal an in-process engine fed the same
+    messages (heard by this test on the same keys)."""
+    ns = NS + "/real"
+    mapper = ["--preset", "cpu", "--submaps", "--set", "training.network.width=32", "--set", "submap.cell_m=3"]
+    frontend = ["--set", "n_frames=200", "--set", "width=80", "--set", "height=60", "--set", "linger=true", "--fast"]
+    heard: dict = {"submaps": {}, "index": None}
+    lock = threading.Lock()
+
+    def on_submap(sample):
+        snap = protocol.WeightSnapshot.from_msg(protocol.unpack(sample.payload.to_bytes()))
+        with lock:
+            old = heard["submaps"].get(snap.submap["id"])
+            if old is None or (snap.epoch, snap.version) > (old.epoch, old.version):
+                heard["submaps"][snap.submap["id"]] = snap
+
+    def on_index(sample):
+        idx = protocol.SubmapIndex.from_msg(protocol.unpack(sample.payload.to_bytes()))
+        with lock:
+            if heard["index"] is None or (idx.epoch, idx.version) > (heard["index"].epoch, heard["index"].version):
+                heard["index"] = idx
+
+    def qinfo(s):
+        status, msg = sc.request(s, f"{ns}/info/query", {"v": 1}, 2.0)
+        return msg if status == "ok" else {}
+
+    with Stack(services=("query", "mapper", "frontend"), namespace=ns,
+               args={"mapper": mapper, "frontend": frontend}) as st:
+        s = sc.open_session(st.endpoints)
+        try:
+            subs = [s.declare_subscriber(f"{ns}/map/submaps/*", on_submap),
+                    s.declare_subscriber(f"{ns}/map/index", on_index)]
+
+            def fe_done():
+                status, msg = sc.request(s, f"{ns}/info/frontend", {"v": 1}, 2.0)
+                return status == "ok" and msg.get("done") and msg.get("pending") == 0
+
+            wait_for(fe_done, 240, period=2.0, what="every keyframe acknowledged")
+            time.sleep(3.0)
+            # This test joined late too: what it missed, it gets (the subscription keeps the newest).
+            for r in s.get(f"{ns}/map/submaps/**", timeout=5.0):
+                if r.ok is not None:
+                    on_submap(r.ok)
+            assert st.stop_one("mapper") == 0  # the map stops changing: its last messages stand
+            time.sleep(2.0)
+            with lock:
+                idx, snaps = heard["index"], dict(heard["submaps"])
+            assert idx is not None and len(idx.submaps) >= 2, idx
+            assert set(snaps) == set(idx.submaps)
+            wait_for(lambda: (lambda i: i.get("submaps") == len(idx.submaps) and i.get("version") == idx.version
+                              and i.get("baked_version") == idx.version)(qinfo(s)), 120, period=1.0,
+                     what="the query service to hold and bake the final map")
+            e = QueryEngine(device="cpu")
+            for snap in snaps.values():
+                assert e.set_submap(snap)
+            assert e.set_index(idx) == [] and e.state.version == idx.version
+            seq = SyntheticSequence(building="office", n_frames=200, H=60, W=80, seed=0)
+            pts = eval_points([seq.frame(i) for i in range(0, 200, 20)], n_points=3000, every=1, rng=0)
+            req = {"v": 1, "points": sc.arr(pts, "<f8"), "gradient": True, "source": "implicit"}
+            status, msg = sc.request(s, f"{ns}/query/sdf", req, 60.0)
+            assert status == "ok", msg
+            want = e.answer_sdf(protocol.SdfRequest(pts, gradient=True, source="implicit"))
+            assert msg["map_version"] == idx.version and msg["map_epoch"] == idx.epoch
+            np.testing.assert_allclose(sc.unarr(msg["sdf"]), want.sdf, atol=1e-5)
+            np.testing.assert_allclose(sc.unarr(msg["gradient"]), want.gradient, atol=1e-4)
+            err = np.abs(sc.unarr(msg["sdf"]) - seq.gt_sdf(pts)).mean()
+            status, fused = sc.request(s, f"{ns}/query/sdf", {"v": 1, "points": sc.arr(pts, "<f8")}, 60.0)
+            assert status == "ok" and fused["baked"] is True
+            err_f = np.abs(sc.unarr(fused["sdf"]) - seq.gt_sdf(pts)).mean()
+            # (Figures only: a walk of seconds trains each submap a few dozen steps.)
+            print(f"{len(idx.submaps)} submaps, map version {idx.version}: SDF error {100 * err:.1f} cm (blend), "
+                  f"{100 * err_f:.1f} cm (fused, baked)")
+            # A whole-map mesh, tiled.
+            status, mesh = sc.request(s, f"{ns}/query/mesh", {"v": 1, "resolution": 0.1}, 120.0)
+            assert status == "ok" and sc.unarr(mesh["faces"]).shape[0] > 1000
+            for d in subs:
+                d.undeclare()
         finally:
             s.close()

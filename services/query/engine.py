@@ -349,10 +349,10 @@ class QueryEngine:
         subs = list(sset.submaps.values())
         observed = union_observed([s.observed for s in subs], self.bake_config.block)
         boxes = [s.bounds for s in subs if s.bounds is not None]
-        if boxes:
-            bounds = np.stack([np.min([b[0] for b in boxes], 0), np.max([b[1] for b in boxes], 0)])
-        elif observed is not None:
+        if observed is not None:  # what was seen (a submap's bounds are its whole extended box)
             bounds = observed.bounds
+        elif boxes:
+            bounds = np.stack([np.min([b[0] for b in boxes], 0), np.max([b[1] for b in boxes], 0)])
         else:  # the extended boxes of the submaps
             corners = np.concatenate([sset.grid.corners_W(s.cell, sset.grid.overlap_m) for s in subs])
             bounds = np.stack([corners.min(0), corners.max(0)])
