@@ -101,10 +101,11 @@ def settled(session, ns: str):
 
 def run_path(kind: str, n_frames: int, width: int, height: int, train_s: float = 0.0, building: str = "office",
              seed: int = 0, mapper_args: list[str] | None = None, log_dir: Path | None = None,
-             garbage_after: int | None = None, timeout: float = 180.0) -> dict:
+             garbage_after: int | None = None, timeout: float = 180.0, sample_s: float = 3.0) -> dict:
     """One path (``synthetic``: protocol v1 frontend; ``ros2``: replay robot + ros2 source) with
-    its own mapper. Returns the keyframes the tap saw, the frontend's and mapper's info, and
-    (after ``train_s`` more seconds) the mapper's latest weight snapshot."""
+    its own mapper. Returns the keyframes the tap saw, the frontend's and mapper's info, the
+    mapper's latest weight snapshot after ``train_s`` more seconds, and the snapshots taken
+    every ``sample_s`` in the second half of that time (the last one included)."""
     ns = f"aisdf/ros2cmp/{kind}"
     common = ["--set", f"building={building}", "--set", f"seed={seed}", "--set", "linger=true",
               "--set", "resend_period_s=2"]
@@ -138,12 +139,19 @@ def run_path(kind: str, n_frames: int, width: int, height: int, train_s: float =
                                        log_dir / "replay.log" if log_dir else None))
                 fi, mi = wait_for(lambda: settled(s, ns), timeout, period=0.5, what=f"the {kind} path to finish")
                 stream_s = time.monotonic() - t0
-                if train_s > 0:
-                    time.sleep(train_s)
+                snaps = []  # the map every sample_s during the second half of the training time
+                end = time.monotonic() + train_s
+                while time.monotonic() < end:
+                    time.sleep(min(sample_s, max(0.0, end - time.monotonic())))
+                    if end - time.monotonic() < train_s / 2:
+                        snap = transport.get_latest(s, keys.key(ns, keys.MAP_WEIGHTS), 5.0)
+                        if snap:
+                            snaps.append(protocol.WeightSnapshot.from_msg(snap))
                 mi = transport.get_latest(s, keys.key(ns, "info/mapper"), 2.0)
                 snap = transport.get_latest(s, keys.key(ns, keys.MAP_WEIGHTS), 5.0)
+                weights = protocol.WeightSnapshot.from_msg(snap) if snap else None
                 return {"keyframes": tap.sorted(), "frontend": fi, "mapper": mi, "stream_s": stream_s,
-                        "weights": protocol.WeightSnapshot.from_msg(snap) if snap else None}
+                        "weights": weights, "snapshots": snaps + ([weights] if weights else [])}
             finally:
                 tap.close()
     finally:
@@ -232,18 +240,29 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--steps-first", type=int, default=50)
     p.add_argument("--steps-per", type=int, default=15)
     p.add_argument("--log-dir", default="runs/ros2-compare")
+    p.add_argument("--sequential", action="store_true", help="one path after the other (default: both at once)")
     p.add_argument("--json", help="also write the figures here")
     a = p.parse_args(argv)
     log_dir = Path(a.log_dir)
     t0 = time.monotonic()
-    res = {}
-    for kind in ("synthetic", "ros2"):
-        print(f"[{time.monotonic() - t0:6.1f} s] {kind} path: {a.n_frames} frames at {a.width}x{a.height}, "
-              f"then {a.train_s:.0f} s of training", flush=True)
-        res[kind] = run_path(kind, a.n_frames, a.width, a.height, a.train_s, a.building, a.seed,
-                             log_dir=log_dir / kind)
+    kinds = ("synthetic", "ros2")
+    print(f"[{time.monotonic() - t0:6.1f} s] both paths {'one after the other' if a.sequential else 'at once'}: "
+          f"{a.n_frames} frames at {a.width}x{a.height}, then {a.train_s:.0f} s of training", flush=True)
+
+    def one(kind):
+        return run_path(kind, a.n_frames, a.width, a.height, a.train_s, a.building, a.seed, log_dir=log_dir / kind)
+
+    if a.sequential:
+        res = {k: one(k) for k in kinds}
+    else:  # at once: both mappers train under the same load
+        from concurrent.futures import ThreadPoolExecutor
+
+        with ThreadPoolExecutor(2) as pool:
+            futures = {k: pool.submit(one, k) for k in kinds}
+            res = {k: f.result() for k, f in futures.items()}
+    for kind in kinds:
         r = res[kind]
-        print(f"[{time.monotonic() - t0:6.1f} s]   {len(r['keyframes'])} keyframes to the mapper "
+        print(f"[{time.monotonic() - t0:6.1f} s] {kind}: {len(r['keyframes'])} keyframes to the mapper "
               f"(frontend: {r['frontend']['frames']} frames, {r['frontend']['keyframes']} keyframes, "
               f"{r['frontend']['acked']} acknowledged); mapper: {r['mapper']['keyframes']} keyframes, "
               f"{r['mapper'].get('steps')} steps", flush=True)
@@ -254,21 +273,31 @@ def main(argv: list[str] | None = None) -> int:
           f"depth {cmp.get('depth')} m, K {cmp.get('K')}, T_WC {cmp.get('T_WC')}, stamp spacing {cmp.get('stamp')} s")
     pts, gt = eval_setup(a.n_frames, a.width, a.height, a.building, a.seed)
     live = {k: snapshot_error(res[k]["weights"], pts, gt) if res[k]["weights"] else float("nan") for k in res}
-    print(f"live mappers (network, {len(pts)} points): protocol v1 {100 * live['synthetic']:.2f} cm "
+    print(f"live mappers, final map (network, {len(pts)} points): protocol v1 {100 * live['synthetic']:.2f} cm "
           f"({res['synthetic']['weights'].step} steps), ROS 2 {100 * live['ros2']:.2f} cm "
           f"({res['ros2']['weights'].step} steps): ratio {live['ros2'] / live['synthetic']:.3f}")
+    # one snapshot's error swings by cm between seconds of training: the mean over the second half
+    swing = {k: [snapshot_error(w, pts, gt) for w in res[k]["snapshots"]] for k in res}
+    mean = {k: float(np.mean(v)) if v else float("nan") for k, v in swing.items()}
+    print("live mappers, mean over the second half of the training time: " + ", ".join(
+        f"{name} {100 * mean[k]:.2f} cm ({len(swing[k])} maps, {100 * min(swing[k]):.2f}-{100 * max(swing[k]):.2f}, "
+        f"steps {res[k]['snapshots'][0].step}-{res[k]['snapshots'][-1].step})"
+        for k, name in (("synthetic", "protocol v1"), ("ros2", "ROS 2")) if swing[k])
+        + f": ratio {mean['ros2'] / mean['synthetic']:.3f}")
     same = {}
     for k in res:
         same[k] = trained_error(res[k]["keyframes"], pts, gt, a.steps_first, a.steps_per, seed=a.seed)
     ratio = same["ros2"][0] / same["synthetic"][0]
     verdict = "within" if ratio <= 1.1 else "NOT within"
     print(f"same training ({same['synthetic'][1]} steps, seed {a.seed}): protocol v1 "
-          f"{100 * same['synthetic'][0]:.2f} cm, ROS 2 {100 * same['ros2'][0]:.2f} cm: ratio {ratio:.3f} ({verdict} 1.1x)")
+          f"{100 * same['synthetic'][0]:.2f} cm, ROS 2 {100 * same['ros2'][0]:.2f} cm: ratio {ratio:.3f} "
+          f"({verdict} 1.1x)")
     print(f"[{time.monotonic() - t0:6.1f} s] done")
     if a.json:
         Path(a.json).write_text(json.dumps({"compare": {k: v for k, v in cmp.items() if not k.startswith("ids")},
                                             "n_keyframes": [len(cmp["ids_a"]), len(cmp["ids_b"])],
                                             "live_cm": {k: 100 * v for k, v in live.items()},
+                                            "live_mean_cm": {k: 100 * v for k, v in mean.items()},
                                             "same_training_cm": {k: 100 * v[0] for k, v in same.items()},
                                             "steps": same["synthetic"][1]}, indent=2))
     return 0 if cmp["same_ids"] and ratio <= 1.1 else 1
