@@ -1,10 +1,11 @@
 """The live ROS 2 source against the protocol-v1 frontend, on the same synthetic frames.
 
     .venv/bin/python tests/run_ros2_live_compare.py                 # 300 frames, office, 160x120
-    .venv/bin/python tests/run_ros2_live_compare.py --n-frames 900 --train-s 60
+    .venv/bin/python tests/run_ros2_live_compare.py --n-frames 900 --train-s 90
 
-Both paths run as real processes over real Zenoh on loopback (explicit endpoints, multicast
-scouting off), each with its own ``aisdf-mapper``:
+Both paths run at once (``--sequential``: one after the other) as real processes over real
+Zenoh on loopback (explicit endpoints, multicast scouting off), each with its own
+``aisdf-mapper``:
 
 * **protocol v1**: ``aisdf-frontend`` (the built-in synthetic source) -> ``keyframes``;
 * **ROS 2**: ``python -m aisdf.ros.replay`` (a ROS 2 robot after rmw_zenoh's design: depth
@@ -14,9 +15,10 @@ scouting off), each with its own ``aisdf-mapper``:
 
 A tap on each AiSDF network records the keyframes the mapper receives. It prints: whether the
 two paths selected the same keyframes and how far apart their arrays are; the live mappers'
-SDF error (their map after the stream plus ``--train-s`` seconds, evaluated on iSDF-protocol
-points against the building's exact SDF; timing-dependent: the live mapper trains as fast as
-the machine lets it); and the same-training error (each path's keyframes trained in-process
+SDF error (their network after the stream plus ``--train-s`` seconds, and the mean over maps
+taken every 3 s in the second half of that time, evaluated on iSDF-protocol points against
+the building's exact SDF; timing-dependent: a live mapper trains as fast as the machine lets
+it, and a map's error swings between snapshots); and the same-training error (each path's keyframes trained in-process
 with the same seed and step schedule), the fair comparison. The issue's criterion: ROS 2 error
 within 1.1x of protocol v1's.
 """
