@@ -32,7 +32,8 @@ class Ros2SourceConfig(Model):
 
     connect: list[str] = Field(default_factory=lambda: ["tcp/localhost:7447"],
                                description="Zenoh router(s) of the robot's ROS 2 network (rmw_zenoh's default)")
-    zenoh_config: Path | None = Field(default_factory=lambda: os.environ.get("ZENOH_SESSION_CONFIG_URI") or None,
+    zenoh_config: Path | None = Field(default_factory=lambda: Path(os.environ["ZENOH_SESSION_CONFIG_URI"])
+                                      if os.environ.get("ZENOH_SESSION_CONFIG_URI") else None,
                                       description="Zenoh session file for the ROS side (default "
                                       "$ZENOH_SESSION_CONFIG_URI, as rmw_zenoh)")
     domain_id: int = Field(default_factory=_ros_domain_id, ge=0, le=232, description="ROS_DOMAIN_ID (default "
