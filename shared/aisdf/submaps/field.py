@@ -15,36 +15,47 @@ from typing import Callable
 
 import numpy as np
 
-from .grid import _OFFSETS, SubmapGrid
+from .grid import _OFFSETS, SubmapGrid, pack_cells, unpack_cells
 
 Evaluator = Callable[[np.ndarray, bool], tuple[np.ndarray, np.ndarray | None]]
 
 
 def assign(grid: SubmapGrid, cells, points_W: np.ndarray) -> dict[tuple[int, int, int], np.ndarray]:
-    """{cell: indices of the points whose blend weight in that cell is > 0}, over ``cells``."""
-    cells = set(cells)
+    """{cell: indices of the points inside that cell's extended box}, over ``cells``."""
+    cells = list(cells)
     p = np.asarray(points_W, np.float64).reshape(-1, 3)
     if not cells or not len(p):
         return {}
     g = grid.to_grid(p)
-    base = np.floor(g / grid.size).astype(np.int64)
-    out: dict[tuple[int, int, int], list[np.ndarray]] = {}
     size, o = grid.size, grid.overlap_m
+    base = np.floor(g / size).astype(np.int64)
+    frac = g - base * size
+    near = [(frac[:, a] < o, frac[:, a] > size[a] - o) for a in range(3)]
+    have = np.sort(pack_cells(np.asarray(cells, np.int64)))
+    out: dict[tuple[int, int, int], list[np.ndarray]] = {}
     for off in _OFFSETS:
-        ijk = base + off
-        lo = ijk * size - o
-        hi = (ijk + 1) * size + o
-        inside = np.all((g > lo) & (g < hi), axis=1)
-        if not inside.any():
+        sel = np.ones(len(g), bool)
+        for a in range(3):
+            if off[a] == -1:
+                sel &= near[a][0]
+            elif off[a] == 1:
+                sel &= near[a][1]
+        idx = np.flatnonzero(sel)
+        if not len(idx):
             continue
-        idx = np.flatnonzero(inside)
-        uniq, inv = np.unique(ijk[idx], axis=0, return_inverse=True)
-        inv = inv.reshape(-1)
-        for u, cell in enumerate(uniq):
-            t = (int(cell[0]), int(cell[1]), int(cell[2]))
-            if t in cells:
-                out.setdefault(t, []).append(idx[inv == u])
-    return {k: np.sort(np.concatenate(v)) for k, v in out.items()}
+        k = pack_cells(base[idx] + off)
+        pos = np.clip(np.searchsorted(have, k), 0, len(have) - 1)
+        ok = have[pos] == k
+        if not ok.any():
+            continue
+        idx, k = idx[ok], k[ok]
+        order = np.argsort(k, kind="stable")
+        idx, k = idx[order], k[order]
+        starts = np.flatnonzero(np.r_[True, k[1:] != k[:-1]])
+        ends = np.r_[starts[1:], len(k)]
+        for a0, b0, c in zip(starts, ends, unpack_cells(k[starts])):
+            out.setdefault((int(c[0]), int(c[1]), int(c[2])), []).append(idx[a0:b0])
+    return {c: np.sort(np.concatenate(v)) for c, v in out.items()}
 
 
 def nearest_cell(grid: SubmapGrid, cells, points_W: np.ndarray) -> list[tuple[int, int, int]]:

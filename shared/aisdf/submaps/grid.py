@@ -115,20 +115,25 @@ class SubmapGrid:
         """{cell: number of points inside its core grown by ``grow`` (default the overlap)}."""
         g = self.to_grid(points_W)
         grow = self.overlap_m if grow is None else float(grow)
-        out: dict[tuple[int, int, int], int] = {}
-        base = np.floor(g / self.size).astype(np.int64)
-        for off in _OFFSETS:  # a point lies in the grown box of its cell and maybe of neighbours
-            ijk = base + off
-            lo = ijk * self.size - grow
-            hi = (ijk + 1) * self.size + grow
-            inside = np.all((g >= lo) & (g < hi), axis=1)
-            if not inside.any():
-                continue
-            keys, counts = np.unique(ijk[inside], axis=0, return_counts=True)
-            for kk, c in zip(keys, counts):
-                t = (int(kk[0]), int(kk[1]), int(kk[2]))
-                out[t] = out.get(t, 0) + int(c)
-        return out
+        size = self.size
+        base = np.floor(g / size).astype(np.int64)
+        frac = g - base * size
+        # per axis: the neighbour below (-1) / above (+1) also holds the point when it is within grow of that face
+        near = [(frac[:, a] < grow, frac[:, a] >= size[a] - grow) for a in range(3)]
+        keys = []
+        for off in _OFFSETS:
+            sel = np.ones(len(g), bool)
+            for a in range(3):
+                if off[a] == -1:
+                    sel &= near[a][0]
+                elif off[a] == 1:
+                    sel &= near[a][1]
+            if sel.any():
+                keys.append(pack_cells(base[sel] + off))
+        if not keys:
+            return {}
+        uniq, counts = np.unique(np.concatenate(keys), return_counts=True)
+        return {tuple(int(x) for x in c): int(n) for c, n in zip(unpack_cells(uniq), counts)}
 
     def inside(self, ijk, points_W: np.ndarray, grow: float | None = None) -> np.ndarray:
         """Points inside the core of ``ijk`` grown by ``grow`` (default the overlap)."""
@@ -177,6 +182,21 @@ class SubmapGrid:
         return (np.allclose(self.R_WG, other.R_WG, atol=1e-9) and np.allclose(self.origin, other.origin, atol=1e-9)
                 and np.isclose(self.cell_m, other.cell_m) and np.isclose(self.cell_height_m, other.cell_height_m)
                 and np.isclose(self.overlap_m, other.overlap_m))
+
+
+_BIAS = 1 << 20  # cells within +-1M of the origin (4,000 km at 4 m)
+
+
+def pack_cells(ijk: np.ndarray) -> np.ndarray:
+    """(N, 3) int cell indices -> (N,) int64 keys (21 bits per axis)."""
+    ijk = np.asarray(ijk, np.int64) + _BIAS
+    return (ijk[:, 0] << 42) | (ijk[:, 1] << 21) | ijk[:, 2]
+
+
+def unpack_cells(keys: np.ndarray) -> np.ndarray:
+    keys = np.asarray(keys, np.int64)
+    m = (1 << 21) - 1
+    return np.stack([(keys >> 42) & m, (keys >> 21) & m, keys & m], axis=-1) - _BIAS
 
 
 _OFFSETS = np.array([[a, b, c] for a in (-1, 0, 1) for b in (-1, 0, 1) for c in (-1, 0, 1)], np.int64)

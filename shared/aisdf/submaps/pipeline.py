@@ -179,7 +179,7 @@ class SubmapPipeline:
         for kf in waiting:
             self._assign(kf)
 
-    def _ray_points(self, kf: Keyframe, stride: int = 4) -> tuple[np.ndarray, np.ndarray]:
+    def _ray_points(self, kf: Keyframe, stride: int = 8) -> tuple[np.ndarray, np.ndarray]:
         """World points along a grid of the keyframe's rays (4 per ray, the last on the
         surface): what the keyframe observes. Also the camera centre."""
         d = kf.depth[::stride, ::stride]
