@@ -247,7 +247,8 @@ class _Out:
             else:
                 qos = ()
                 if latched:
-                    from rosbags.interfaces import Qos, QosDurability, QosHistory, QosLiveliness, QosReliability, QosTime
+                    from rosbags.interfaces import (Qos, QosDurability, QosHistory, QosLiveliness, QosReliability,
+                                                    QosTime)
 
                     zero = QosTime(sec=0, nsec=0)
                     qos = (Qos(QosHistory.KEEP_LAST, 1, QosReliability.RELIABLE, QosDurability.TRANSIENT_LOCAL,
@@ -320,7 +321,8 @@ def write_bag(path, source, fmt: str = "mcap", *, encoding: str = "16UC1", T_map
                     out.put(next_tf + 1_500_000, "/odom", "nav_msgs/msg/Odometry", msgs.odometry(next_tf, T))
             next_tf += period
         while next_map <= t_end:
-            out.put(next_map + 800_000, "/tf", "tf2_msgs/msg/TFMessage", msgs.tf([("map", "odom", next_map, T_MAP_ODOM)]))
+            out.put(next_map + 800_000, "/tf", "tf2_msgs/msg/TFMessage",
+                    msgs.tf([("map", "odom", next_map, T_MAP_ODOM)]))
             next_map += 100_000_000
 
     for n, i in enumerate(indices):

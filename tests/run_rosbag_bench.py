@@ -162,7 +162,8 @@ def main(argv=None) -> None:
     ref = rows["folder"]
     print(f"\n{n} frames, {es and len(es)} evaluation points, preset {a.preset}, width {a.width}, "
           f"{a.steps_first} + {a.steps_per_keyframe} steps per keyframe, seed {a.seed}\n")
-    print("| source | keyframes | same keyframes as folder | SDF error (cm) | vs folder | TF check | pose dev. max (mm) |")
+    print("| source | keyframes | same keyframes as folder | SDF error (cm) | vs folder | TF check "
+          "| pose dev. max (mm) |")
     print("|---|---|---|---|---|---|---|")
     ok = True
     for name, r in rows.items():
