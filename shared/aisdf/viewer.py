@@ -260,14 +260,15 @@ class LiveViewer:
         for name in (keys.KEYFRAMES, keys.MAP_SURFELS, keys.MAP_WEIGHTS):
             self._decls.append(self.session.declare_subscriber(
                 keys.key(self.ns, name), lambda s, name=name: self._on_sample(name, s)))
+        # Subscribed: say so (the demo and the tests wait for this token before starting a frontend).
+        self._decls.append(self.session.liveliness().declare_token(
+            keys.status_key(self.ns, "viewer", uuid.uuid4().hex[:8])))
         for t in self._threads:
             t.start()
         for name in (keys.MAP_SURFELS, keys.MAP_WEIGHTS):  # the latest map at once, not at the next publication
             for reply in self.session.get(keys.key(self.ns, name), timeout=2.0):
                 if reply.ok is not None:
                     self._offer(name, transport.payload_bytes(reply.ok.payload))
-        self._decls.append(self.session.liveliness().declare_token(
-            keys.status_key(self.ns, "viewer", uuid.uuid4().hex[:8])))
         return self
 
     def _on_sample(self, name: str, sample) -> None:
