@@ -255,7 +255,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--encoding", default="32FC1", choices=["32FC1", "16UC1"])
     p.add_argument("--rate", type=float, default=1.0, help="times the sensor's pace (0: as fast as possible)")
     p.add_argument("--wait-subscriber", type=float, default=0.0, metavar="S",
-                   help="wait up to S seconds for a subscription on the depth topic before playing")
+                   help="wait up to S seconds for subscriptions to the depth, camera info and /tf topics")
     p.add_argument("--garbage-after", type=int, help=argparse.SUPPRESS)
     args = p.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s replay %(levelname)s %(message)s")
@@ -280,11 +280,11 @@ def main(argv: list[str] | None = None) -> int:
                                 fps=args.fps, noise=not args.no_noise, seed=args.seed)
         robot = SyntheticRobot(session, seq, args.domain_id, args.distro, args.encoding)
         try:
-            if args.wait_subscriber > 0:
-                end = time.monotonic() + args.wait_subscriber
-                while not stop.is_set() and time.monotonic() < end and not any(
-                        e.kind == rz.SUBSCRIPTION and e.topic == DEPTH_TOPIC
-                        for e in rz.discover(session, args.domain_id, timeout=0.5)):
+            if args.wait_subscriber > 0:  # a subscriber to images, camera info and /tf
+                end, wanted = time.monotonic() + args.wait_subscriber, {DEPTH_TOPIC, INFO_TOPIC, "/tf"}
+                while not stop.is_set() and time.monotonic() < end and not wanted <= {
+                        e.topic for e in rz.discover(session, args.domain_id, timeout=0.5)
+                        if e.kind == rz.SUBSCRIPTION}:
                     time.sleep(0.2)
             log.info("publishing the synthetic %r building (%d frames, %.0f fps x %.1f) on domain %d",
                      args.building, len(seq), args.fps, args.rate, args.domain_id)
