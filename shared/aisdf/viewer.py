@@ -281,18 +281,21 @@ class LiveViewer:
         except protocol.ProtocolError as e:
             self.view.malformed(name, e.message)
             return
-        if name == keys.KEYFRAMES:
-            try:
-                self.keyframes.put_nowait(msg)
-            except queue.Full:
-                self.dropped += 1
-                log.warning("keyframe queue full (%d): dropped one (%d so far)", self.keyframes.maxsize, self.dropped)
-        else:
-            with self._cond:  # only the newest map waits: (epoch, version) order, as the protocol says
+        except Exception as e:  # noqa: BLE001 - never let a message break the subscription
+            self.view.malformed(name, f"{type(e).__name__}: {e}")
+            return
+        with self._cond:
+            if name == keys.KEYFRAMES:
+                try:
+                    self.keyframes.put_nowait(msg)
+                except queue.Full:
+                    self.dropped += 1
+                    log.warning("keyframe queue full (%d): dropped one (%d so far)", self.keyframes.maxsize,
+                                self.dropped)
+            else:  # only the newest map waits: (epoch, version) order, as the protocol says
                 held = self.latest.get(name)
                 if held is None or (msg.epoch, msg.version) > (held.epoch, held.version):
                     self.latest[name] = msg
-        with self._cond:
             self._cond.notify()
 
     def _log(self, name: str, msg) -> None:
