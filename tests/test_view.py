@@ -155,7 +155,13 @@ def test_view_skips_malformed_messages_and_keeps_going(tmp_path):
             time.sleep(0.05)
         s.put(keys.key(NS, keys.KEYFRAMES), b"garbage", encoding=enc)
         s.put(keys.key(NS, keys.MAP_WEIGHTS), msgpack.packb({"v": 1, "version": "x"}), encoding=enc)
+        s.put(keys.key(NS, keys.MAP_INDEX), msgpack.packb({"v": 1, "version": 3, "stamp": 0.0, "grid": {}}),
+              encoding=enc)
         time.sleep(0.3)
+        grid = {"R_WG": np.eye(3).reshape(-1).tolist(), "origin": [0.0, 0.0, 0.0], "cell_m": 4.0,
+                "cell_height_m": 3.0, "overlap_m": 0.5}
+        index = protocol.SubmapIndex(5, 1.0, grid, {"0_0_0": {"version": 5, "step": 10}}, epoch=1)
+        transport.put(s, keys.key(NS, keys.MAP_INDEX), index.to_msg())  # a submap mapper's map version (1.3)
         transport.put(s, keys.key(NS, keys.MAP_SURFELS), good.to_msg())
         transport.put(s, keys.key(NS, keys.KEYFRAMES), kf.to_msg())
         transport.put(s, keys.key(NS, keys.KEYFRAMES), kf.to_msg())  # a resend: logged once
@@ -172,13 +178,15 @@ def test_view_skips_malformed_messages_and_keeps_going(tmp_path):
     summary = text.strip().splitlines()[-1]
     print(summary)
     assert "viewer: 1 keyframes (1 repeats skipped, 0 dropped), 1 surfel maps (last: 2 surfels)" in summary
-    assert f"{len(bad_surfels) + 2} malformed messages skipped" in summary
+    assert "0 weight snapshots, 1 submap indexes, 0 meshes" in summary
+    assert f"{len(bad_surfels) + 3} malformed messages skipped" in summary
     rec = read_recording(tmp_path / "view.rrd")
     boxes = rows(rec["/world/surfels"], "Boxes3D:centers")
     assert len(boxes) == 1 and np.allclose(boxes[0], good.surfels["center"])
     assert rows(rec["/world/surfels"], "Boxes3D:class_ids") == [[0, 1]]  # vertical, horizontal 0
     assert len(rows(rec["/world/cameras/depth/depth"], "DepthImage:buffer")) == 1
-    assert len(rows(rec["/log"], "TextLog:text")) == len(bad_surfels) + 2
+    assert len(rows(rec["/log"], "TextLog:text")) == len(bad_surfels) + 3
+    assert rows(rec["/stats/map_version"], "Scalars:scalars") == [[5.0]]
 
 
 def test_view_without_rerun_fails_clearly(tmp_path):

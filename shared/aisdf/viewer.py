@@ -1,6 +1,7 @@
 """``aisdf view``: a live rerun view of a running stack, from the wire protocol alone.
 
-Subscribes to ``<ns>/keyframes``, ``<ns>/map/surfels`` and ``<ns>/map/weights``, asks
+Subscribes to ``<ns>/keyframes``, ``<ns>/map/surfels`` and ``<ns>/map/weights`` (or, from a
+submap mapper, ``<ns>/map/index``: protocol 1.3; only for the map version), asks
 ``<ns>/query/mesh`` every ``mesh_period_s`` and logs to rerun as things arrive:
 
 * ``world/cameras/<sensor>``: the newest keyframe's pose (Transform3D), its camera
@@ -102,10 +103,10 @@ class MapView:
         self.seen: set[tuple[str, int]] = set()
         self.paths: dict[str, list[tuple[float, np.ndarray]]] = defaultdict(list)
         self.surfel_key: tuple[int, int] | None = None
-        self.weights_key: tuple[int, int] | None = None
+        self.map_key: tuple[int, int] | None = None  # newest (epoch, version) from map/weights or map/index
         self.n_classes = -1
-        self.counts = {"keyframes": 0, "repeats": 0, "surfel_maps": 0, "surfels": 0, "weights": 0, "meshes": 0,
-                       "mesh_version": None, "malformed": 0}
+        self.counts = {"keyframes": 0, "repeats": 0, "surfel_maps": 0, "surfels": 0, "weights": 0, "indexes": 0,
+                       "meshes": 0, "mesh_version": None, "malformed": 0}
         self._lock = threading.Lock()
 
     def _time(self) -> None:
@@ -186,16 +187,29 @@ class MapView:
         self._scalar("surfels", len(s))
         return True
 
-    def weights(self, w: protocol.WeightSnapshot) -> bool:
+    def _map_version(self, epoch: int, version: int, counter: str) -> bool:
         with self._lock:
-            key = (w.epoch, w.version)
-            if self.weights_key is not None and key <= self.weights_key:
+            key = (epoch, version)
+            if self.map_key is not None and key <= self.map_key:
                 return False
-            self.weights_key = key
-            self.counts["weights"] += 1
+            self.map_key = key
+            self.counts[counter] += 1
         self._time()
-        self._scalar("map_version", w.version)
+        self._scalar("map_version", version)
+        return True
+
+    def weights(self, w: protocol.WeightSnapshot) -> bool:
+        """A one-network map's snapshot: its version and training step."""
+        if not self._map_version(w.epoch, w.version, "weights"):
+            return False
         self._scalar("training_step", w.step)
+        return True
+
+    def index(self, idx: protocol.SubmapIndex) -> bool:
+        """A submap mapper's index (protocol 1.3): its version and the number of submaps."""
+        if not self._map_version(idx.epoch, idx.version, "indexes"):
+            return False
+        self._scalar("submaps", len(idx.submaps))
         return True
 
     def mesh(self, m: protocol.MeshReply) -> None:
@@ -235,7 +249,8 @@ class LiveViewer:
     """Zenoh wiring: subscriptions feed a worker thread that logs; another thread asks for meshes."""
 
     DECODERS = {keys.KEYFRAMES: protocol.Keyframe, keys.MAP_SURFELS: protocol.SurfelMap,
-                keys.MAP_WEIGHTS: protocol.WeightSnapshot}
+                keys.MAP_WEIGHTS: protocol.WeightSnapshot, keys.MAP_INDEX: protocol.SubmapIndex}
+    LATEST = (keys.MAP_SURFELS, keys.MAP_WEIGHTS, keys.MAP_INDEX)  # only the newest of each waits
 
     def __init__(self, session, view: MapView, namespace: str = keys.DEFAULT_NAMESPACE,
                  mesh_period_s: float = 5.0, mesh_resolution: float = 0.08, mesh_timeout_s: float = 60.0,
@@ -247,7 +262,7 @@ class LiveViewer:
         self.mesh_resolution = mesh_resolution
         self.mesh_timeout_s = mesh_timeout_s
         self.keyframes: queue.Queue = queue.Queue(maxsize=keyframe_queue)
-        self.latest: dict[str, object] = {}  # map/surfels, map/weights: only the newest waits
+        self.latest: dict[str, object] = {}  # LATEST keys: only the newest waits
         self.dropped = 0
         self._cond = threading.Condition()
         self._stop = threading.Event()
@@ -257,7 +272,7 @@ class LiveViewer:
             self._threads.append(threading.Thread(target=self._meshes, name="viewer-mesh", daemon=True))
 
     def start(self) -> "LiveViewer":
-        for name in (keys.KEYFRAMES, keys.MAP_SURFELS, keys.MAP_WEIGHTS):
+        for name in (keys.KEYFRAMES, *self.LATEST):
             self._decls.append(self.session.declare_subscriber(
                 keys.key(self.ns, name), lambda s, name=name: self._on_sample(name, s)))
         # Subscribed: say so (the demo and the tests wait for this token before starting a frontend).
@@ -265,7 +280,7 @@ class LiveViewer:
             keys.status_key(self.ns, "viewer", uuid.uuid4().hex[:8])))
         for t in self._threads:
             t.start()
-        for name in (keys.MAP_SURFELS, keys.MAP_WEIGHTS):  # the latest map at once, not at the next publication
+        for name in self.LATEST:  # the latest map at once, not at the next publication
             for reply in self.session.get(keys.key(self.ns, name), timeout=2.0):
                 if reply.ok is not None:
                     self._offer(name, transport.payload_bytes(reply.ok.payload))
@@ -301,7 +316,7 @@ class LiveViewer:
     def _log(self, name: str, msg) -> None:
         try:
             {keys.KEYFRAMES: self.view.keyframe, keys.MAP_SURFELS: self.view.surfel_map,
-             keys.MAP_WEIGHTS: self.view.weights}[name](msg)
+             keys.MAP_WEIGHTS: self.view.weights, keys.MAP_INDEX: self.view.index}[name](msg)
         except Exception as e:  # noqa: BLE001 - a message that decodes but cannot be drawn is skipped too
             log.exception("could not log a message on %s", name)
             self.view.malformed(name, f"{type(e).__name__}: {e}")
@@ -315,7 +330,7 @@ class LiveViewer:
                 break
             self._log(keys.KEYFRAMES, kf)
             did = True
-        for name in (keys.MAP_SURFELS, keys.MAP_WEIGHTS):
+        for name in self.LATEST:
             with self._cond:
                 msg = self.latest.pop(name, None)
             if msg is not None:
@@ -337,7 +352,7 @@ class LiveViewer:
             t = time.monotonic()
             asked = False
             v = self.view
-            if v.counts["meshes"] == 0 or v.weights_key is None or v.weights_key[1] != v.counts["mesh_version"]:
+            if v.counts["meshes"] == 0 or v.map_key is None or v.map_key[1] != v.counts["mesh_version"]:
                 asked = True
                 try:
                     reply = protocol.MeshReply.from_msg(transport.query(self.session, key, request,
@@ -378,7 +393,7 @@ def summary_line(view: MapView, dropped: int, save: Path | None) -> str:
     where = f"; wrote {save}" if save else ""
     return (f"viewer: {c['keyframes']} keyframes ({c['repeats']} repeats skipped, {dropped} dropped), "
             f"{c['surfel_maps']} surfel maps (last: {c['surfels']} surfels), {c['weights']} weight snapshots, "
-            f"{c['meshes']} meshes, {c['malformed']} malformed messages skipped{where}")
+            f"{c['indexes']} submap indexes, {c['meshes']} meshes, {c['malformed']} malformed messages skipped{where}")
 
 
 def run(cfg: ViewerConfig, stop: threading.Event | None = None) -> dict:
