@@ -119,7 +119,8 @@ def main(argv=None) -> None:
         label = LABELS[fmt] + ("" if at_images else ", TF at 50 Hz only")
         rows[name] = {"label": label, "bag_mb": round(size / 2**20, 1), "write_s": round(tw, 1),
                      "open_s": round(time.perf_counter() - t, 2), "placed": len(src), "skipped": src.counts["skipped"],
-                     "tf_check": "passed" if verdict.ok else "FAILED", "pose_dev_mm_max": round(1e3 * max(dev), 3),
+                     "tf_check": "passed" if verdict.ok else "FAILED",
+                     "pose_dev_mm_max": round(1e3 * float(max(dev)), 3),
                      "pose_bound_mm_max": round(1e3 * float(et.max()), 3)}
         print(f"{label}: {rows[name]}")
         if len(src) != n or not verdict.ok:
