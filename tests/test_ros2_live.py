@@ -314,3 +314,34 @@ def test_live_source_waits_for_its_robot_and_ends_on_sigterm():
         assert time.monotonic() - t < 10
     finally:
         st.stop()
+
+
+@pytest.mark.e2e
+def test_a_robot_whose_tf_lacks_the_optical_rotation_is_refused_in_words(tmp_path):
+    """The replay robot (map z up, as REP 105 asks) with /tf_static missing camera_link ->
+    optical: the frontend checks its first 90 frames, maps nothing and exits saying why."""
+    import run_ros2_live_compare as cmp
+    from aisdf.stack import Stack
+
+    port = free_port()
+    st = Stack(services=("frontend",), namespace="aisdf/ros2badtf", log_dir=tmp_path,
+               args={"frontend": ["--source", "ros2", "--ros-connect", endpoint(port), "--ros-idle-timeout", "3",
+                                  "--set", "reliable=false"]})
+    router, rlog = cmp.popen(cmp.router_command(port), tmp_path / "router.log")
+    replay = None
+    try:
+        st.start()
+        replay, plog = cmp.popen(cmp.replay_command(port, 120, 80, 60, extra=[
+            "--wait-subscriber", "30", "--no-optical-rotation", "--world-frame", "identity"]),
+                                 tmp_path / "replay.log")
+        rc = st.procs["frontend"].wait(90)
+        log = (tmp_path / "frontend.log").read_text()
+        print(log[-1500:])
+        assert rc != 0
+        assert "refusing to map the live robot's frames" in log and "TF check FAILED" in log
+        assert "camera_link -> optical rotation" in log and "done:" not in log  # nothing was mapped
+    finally:
+        st.stop()
+        if replay is not None:
+            cmp.stop_proc(replay, plog)
+        cmp.stop_proc(router, rlog)

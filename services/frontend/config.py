@@ -51,6 +51,9 @@ class Ros2SourceConfig(Model):
     idle_timeout_s: float | None = Field(None, gt=0, description="end after this long without a depth image "
                                          "(once one came); None: run until stopped")
     max_wait_s: float = Field(1.0, gt=0, description="an image waits this long at most for the TF to place it")
+    tf_check: bool = Field(True, description="check the TF chain on the first frames (held meanwhile); refuse the "
+                           "robot's frames in words when it fails (aisdf.ros.check)")
+    tf_check_window: int = Field(90, ge=2, description="frames held and checked before mapping starts")
 
 
 class RosbagSourceConfig(Model):

@@ -248,6 +248,7 @@ def cli(argv: list[str] | None = None) -> None:
     r.add_argument("--ros-fixed-frame", help="world frame of the poses (default map)")
     r.add_argument("--ros-idle-timeout", type=float, metavar="S",
                    help="end after S seconds without a depth image (default: run until stopped)")
+    r.add_argument("--ros-no-tf-check", action="store_true", help="map without checking the TF chain first")
     b = p.add_argument_group("ROS recording (--source rosbag --path BAG: ROS 1 .bag, rosbag2 folder, .db3 or "
                              ".mcap; any rosbag.* field with --set)")
     b.add_argument("--list", action="store_true", help="print the recording's topics, frames, TF tree and the TF "
@@ -272,6 +273,7 @@ def cli(argv: list[str] | None = None) -> None:
                                                   "ros2.info_topic": args.ros_info_topic,
                                                   "ros2.fixed_frame": args.ros_fixed_frame,
                                                   "ros2.idle_timeout_s": args.ros_idle_timeout,
+                                                  "ros2.tf_check": False if args.ros_no_tf_check else None,
                                                   "rosbag.depth_topic": args.depth_topic,
                                                   "rosbag.info_topic": args.info_topic,
                                                   "rosbag.fixed_frame": args.fixed_frame,

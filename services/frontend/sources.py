@@ -36,7 +36,8 @@ def _ros2(cfg: FrontendConfig):
                       camera_frame=r.camera_frame, tf_topic=r.tf_topic, tf_static_topic=r.tf_static_topic,
                       depth_type=r.depth_type, domain_id=r.domain_id, distro=r.distro, connect=r.connect,
                       zenoh_config=str(r.zenoh_config) if r.zenoh_config else None, node_name=r.node_name,
-                      idle_timeout_s=r.idle_timeout_s, max_wait_s=r.max_wait_s)
+                      idle_timeout_s=r.idle_timeout_s, max_wait_s=r.max_wait_s, tf_check=r.tf_check,
+                      tf_check_window=r.tf_check_window)
 
 
 def open_rosbag(cfg: FrontendConfig):

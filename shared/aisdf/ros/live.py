@@ -8,6 +8,10 @@ messages into posed frames with :class:`aisdf.ros.assemble.FrameAssembler` (the 
 handling as the rosbag source: the chain from the fixed frame to the image's frame,
 interpolated at the image's stamp; frames that cannot be placed are skipped and counted).
 
+Before mapping, the TF chain is checked on the first frames (``tf_check``, the rosbag
+source's check: the image's "down" against the fixed frame's -z, and depth consistency between
+frames; a robot whose chain lacks the optical rotation is refused in words).
+
 It is a *live* source (``live = True``): no ``len()``, no random access; ``frames(stop)``
 yields frames as they are assembled and ends when ``stop`` is set, or after ``idle_timeout_s``
 without a depth image (once one has arrived), or after ``max_frames`` images."""
@@ -39,7 +43,8 @@ class Ros2Source:
                  depth_type: str = "image", domain_id: int = 0, distro: str = "jazzy",
                  connect: list[str] | None = None, zenoh_config: str | None = None,
                  node_name: str = "aisdf_frontend", node_namespace: str = "/", idle_timeout_s: float | None = None,
-                 max_wait_s: float = 1.0, queue_max: int = 2000, session=None):
+                 max_wait_s: float = 1.0, queue_max: int = 2000, tf_check: bool = True, tf_check_window: int = 90,
+                 session=None):
         if depth_type not in DEPTH_TYPES:
             raise ValueError(f"depth_type {depth_type!r}: choose one of {sorted(DEPTH_TYPES)}")
         self.depth_topic = rz.qualify(depth_topic)
@@ -47,6 +52,8 @@ class Ros2Source:
         self.tf_topic, self.tf_static_topic = rz.qualify(tf_topic), rz.qualify(tf_static_topic)
         self.depth_msgtype = DEPTH_TYPES[depth_type]
         self.idle_timeout_s = idle_timeout_s
+        self.tf_check, self.tf_check_window = tf_check, max(2, int(tf_check_window))
+        self.tf_verdict = None
         self.assembler = FrameAssembler(self.depth_topic, self.info_topic, fixed_frame, camera_frame=camera_frame,
                                         tf_topics=(self.tf_topic,), static_tf_topics=(self.tf_static_topic,),
                                         max_wait_s=max_wait_s)
@@ -86,10 +93,45 @@ class Ros2Source:
     def counts(self) -> dict:
         subs = {name: {"received": s.counts.received, "malformed": s.counts.malformed}
                 for name, s in getattr(self, "subs", {}).items()}
-        return {**self.assembler.counts, "queue_dropped": self.dropped, "topics": subs}
+        return {**self.assembler.counts, "queue_dropped": self.dropped, "topics": subs,
+                "tf_check": None if self.tf_verdict is None else str(self.tf_verdict)}
 
     def frames(self, stop: threading.Event, max_frames: int | None = None) -> Iterator[dict]:
-        """Posed frames as they are assembled, until ``stop``, the idle timeout or ``max_frames``."""
+        """Posed frames as they are assembled, until ``stop``, the idle timeout or ``max_frames``.
+        With ``tf_check`` the first ``tf_check_window`` frames are held and checked
+        (:func:`aisdf.ros.check.check_frames`: gravity and depth consistency) before any is
+        yielded; a failed check raises ``ValueError`` with the verdict in words."""
+        if not self.tf_check:
+            yield from self._frames(stop, max_frames)
+            return
+        from .check import check_frames, sample_indices
+
+        held: list[dict] = []
+        frames = self._frames(stop, max_frames)
+        try:
+            for f in frames:
+                if self.tf_verdict is not None:
+                    yield f
+                    continue
+                held.append(f)
+                if len(held) >= self.tf_check_window:
+                    yield from self._checked(held, check_frames, sample_indices)
+                    held = []
+            if self.tf_verdict is None and held:
+                yield from self._checked(held, check_frames, sample_indices)
+        finally:
+            frames.close()
+
+    def _checked(self, held: list[dict], check_frames, sample_indices) -> Iterator[dict]:
+        self.tf_verdict = check_frames([held[i] for i in sample_indices(len(held), 12, len(held))])
+        if not self.tf_verdict.ok:
+            raise ValueError(f"refusing to map the live robot's frames (fixed frame {self.assembler.fixed_frame!r}): "
+                             f"{self.tf_verdict} (fix the robot's TF or name the right frames; "
+                             f"--ros-no-tf-check maps it anyway)")
+        log.info("%s", self.tf_verdict)
+        yield from held
+
+    def _frames(self, stop: threading.Event, max_frames: int | None = None) -> Iterator[dict]:
         last_image = None
         n_images = 0
         while not stop.is_set():

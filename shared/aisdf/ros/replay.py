@@ -148,8 +148,9 @@ class SyntheticRobot:
     """Publishes a :class:`aisdf.synthetic.SyntheticSequence` as a ROS 2 robot on a session."""
 
     def __init__(self, session, seq, domain_id: int = 0, distro: str = "jazzy", encoding: str = "32FC1",
-                 node_name: str = "aisdf_robot"):
+                 node_name: str = "aisdf_robot", optical_rotation: bool = True):
         self.seq, self.encoding = seq, encoding
+        self.optical_rotation = optical_rotation  # False: a broken robot whose TF lacks it (tests)
         self.node = rz.Node(session, node_name, "/", domain_id, distro)
         self.msgs = Messages(self.node.typestore)
         self.pub_depth = self.node.create_publisher(DEPTH_TOPIC, "sensor_msgs/msg/Image", rz.QoS(depth=10))
@@ -161,7 +162,8 @@ class SyntheticRobot:
     def publish_static(self, t0_ns: int) -> None:
         m = self.msgs
         self.pub_static.publish(m.tf([m.transform(t0_ns, "base_link", "camera_link", T_BASE_CAMERA_LINK),
-                                      m.transform(t0_ns, "camera_link", OPTICAL_FRAME, T_CAMERA_LINK_OPTICAL)]))
+                                      m.transform(t0_ns, "camera_link", OPTICAL_FRAME,
+                                                  T_CAMERA_LINK_OPTICAL if self.optical_rotation else np.eye(4))]))
 
     def run(self, stop: threading.Event, n_frames: int | None = None, rate: float = 1.0,
             t0_ns: int | None = None, garbage_after: int | None = None) -> dict:
@@ -252,11 +254,16 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--height", type=int, default=120)
     p.add_argument("--fps", type=float, default=30.0)
     p.add_argument("--no-noise", action="store_true", help="exact depth (no Kinect noise model)")
+    p.add_argument("--world-frame", default="tilted", choices=["tilted", "identity"],
+                   help="the building's world (= map) frame: tilted (as the frontend's synthetic source) or "
+                   "identity (z up, as REP 105 asks of map)")
     p.add_argument("--encoding", default="32FC1", choices=["32FC1", "16UC1"])
     p.add_argument("--rate", type=float, default=1.0, help="times the sensor's pace (0: as fast as possible)")
     p.add_argument("--wait-subscriber", type=float, default=0.0, metavar="S",
                    help="wait up to S seconds for subscriptions to the depth, camera info and /tf topics")
     p.add_argument("--garbage-after", type=int, help=argparse.SUPPRESS)
+    p.add_argument("--no-optical-rotation", action="store_true",
+                   help="a broken robot: /tf_static without the camera_link -> optical rotation (tests)")
     args = p.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s replay %(levelname)s %(message)s")
     import signal
@@ -277,8 +284,9 @@ def main(argv: list[str] | None = None) -> int:
         from aisdf.synthetic import SyntheticSequence
 
         seq = SyntheticSequence(building=args.building, n_frames=args.n_frames, H=args.height, W=args.width,
-                                fps=args.fps, noise=not args.no_noise, seed=args.seed)
-        robot = SyntheticRobot(session, seq, args.domain_id, args.distro, args.encoding)
+                                fps=args.fps, noise=not args.no_noise, seed=args.seed, world_frame=args.world_frame)
+        robot = SyntheticRobot(session, seq, args.domain_id, args.distro, args.encoding,
+                               optical_rotation=not args.no_optical_rotation)
         try:
             if args.wait_subscriber > 0:  # a subscriber to images, camera info and /tf
                 end, wanted = time.monotonic() + args.wait_subscriber, {DEPTH_TOPIC, INFO_TOPIC, "/tf"}
