@@ -34,7 +34,9 @@ def test_quick_scaling_table(result):
         for scene in ("office", "floor"):
             r = res["runs"][m][scene]
             assert r["keyframes"] + r["rejected"] == n and r["rejected"] == 0
-            assert r["steps"] >= 1 and r["step_ms"]["n"] == r["steps"] and 0 < r["step_ms"]["mean"] <= r["step_ms"]["p95"]
+            assert r["step_ms"]["n"] == r["steps"]
+            if r["steps"]:  # none only if adding the keyframes alone took the whole walk (an overloaded machine)
+                assert 0 < r["step_ms"]["mean"] <= r["step_ms"]["p95"]
             # One publication per period over the walk and the tail (the clock pauses for them).
             assert abs(len(r["periods"]) - (n * P + cfg.tail_s) / P) <= 1
             assert sum(p["walking"] for p in r["periods"]) == pytest.approx(n, abs=1)
@@ -44,7 +46,8 @@ def test_quick_scaling_table(result):
             assert r["memory_bytes"] == sum(mem.values()) and r["memory_per_keyframe"] == r["memory_bytes"] // n
             for k in ("error_walk_end_cm", "error_end_cm"):
                 assert math.isfinite(r[k]) and 0 < r[k] < 200
-            assert r["steps_end"] >= r["steps_walk_end"]
+            assert r["steps_end"] >= r["steps_walk_end"] and r["t_end"] >= r["t_walk_end"] >= n * P
+            assert 0 <= r["keyframe_late_s"]["mean"] <= r["keyframe_late_s"]["max"]
         floor = res["runs"][m]["floor"]
         assert len(floor["rooms"]) >= 5  # a dozen keyframes over the whole walk: most rooms seen
         for room, v in floor["rooms"].items():

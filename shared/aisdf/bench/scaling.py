@@ -203,11 +203,13 @@ def walk(pipe, seq, frames: list[dict], stream_per_kf: float, cfg: ScalingConfig
     rooms: dict[str, dict] = {}
     scorers: dict[str, _Scorer] = {}
     rec: dict[str, Any] = {"rejected": 0}
+    late: list[float] = []  # how long after its time each keyframe was added (a busy mapper is late)
     clock = _Clock()
     next_kf, next_period, version = 0, P, 1
     while True:
         t = clock()
         if next_kf < n and t >= next_kf * P:
+            late.append(t - next_kf * P)
             try:
                 pipe.add_keyframe(_frame(frames[next_kf]))
             except ValueError as e:
@@ -234,7 +236,7 @@ def walk(pipe, seq, frames: list[dict], stream_per_kf: float, cfg: ScalingConfig
                     sc = _room_scorer(seq, vis, room, cfg)
                     if sc is not None:
                         scorers[room] = sc
-                        rooms[room] = {"t_after_visit": round(when, 2), "points": len(sc.points),
+                        rooms[room] = {"t_after_visit": round(when, 2), "t_scored": round(t, 2), "points": len(sc.points),
                                        "keyframes": len(vis), "after_visit_cm": sc.score(pipe)}
                         say(f"  {room}: {rooms[room]['after_visit_cm']:.2f} cm just after its visit "
                             f"({len(vis)} keyframes, t = {when:.0f} s)")
@@ -243,6 +245,7 @@ def walk(pipe, seq, frames: list[dict], stream_per_kf: float, cfg: ScalingConfig
                     rec[f"error_{key}_cm"] = whole.score(pipe)
                     rec[f"memory_{key}"] = {k: int(v) for k, v in pipe.memory().items()}
                     rec[f"steps_{key}"] = int(pipe.steps)
+                    rec[f"t_{key}"] = round(t, 2)  # when it was scored (later than planned on a busy machine)
                     for r, sc in scorers.items():
                         rooms[r][f"{key}_cm"] = sc.score(pipe)
                     say(f"  {'end of the walk' if key == 'walk_end' else f'+{cfg.tail_s:g} s'}: "
@@ -265,6 +268,8 @@ def walk(pipe, seq, frames: list[dict], stream_per_kf: float, cfg: ScalingConfig
         "keyframes": int(pipe.n_keyframes), "steps": int(pipe.steps),
         "step_ms": {"mean": round(float(np.mean(step_ms)), 2) if step_ms else None,
                     "p95": round(float(np.percentile(step_ms, 95)), 2) if step_ms else None, "n": len(step_ms)},
+        "keyframe_late_s": {"mean": round(float(np.mean(late)), 3) if late else None,
+                            "max": round(float(np.max(late)), 3) if late else None},
         "memory_bytes": total, "memory_per_keyframe": int(total / max(pipe.n_keyframes, 1)),
         "bytes_per_s": round(sum(p["bytes"] for p in walking) / (len(walking) * P), 1) if walking else None,
         "bytes_per_s_all": round(sum(p["bytes_all"] for p in walking) / (len(walking) * P), 1) if walking else None,
@@ -325,7 +330,9 @@ def report(res: dict) -> str:
     lines += [head, "|---|" + "---:|" * (len(res["scenes"]) * len(avail))]
     rows = [
         ("keyframes", lambda r: f"{r['keyframes']}"),
-        ("training steps", lambda r: f"{r['steps']:,}"),
+        ("training steps (walk / +tail)", lambda r: f"{r['steps_walk_end']:,} / {r['steps_end'] - r['steps_walk_end']:,}"),
+        ("keyframes added late, mean / max (s)", lambda r: f"{r['keyframe_late_s']['mean']:.2f} / "
+         f"{r['keyframe_late_s']['max']:.2f}"),
         ("step time mean / p95 (ms)", lambda r: f"{r['step_ms']['mean']:.1f} / {r['step_ms']['p95']:.1f}"
          if r["step_ms"]["n"] else "no step"),
         ("mapper memory (MB)", lambda r: _mb(r["memory_bytes"])),
