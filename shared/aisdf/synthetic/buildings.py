@@ -280,7 +280,7 @@ def floor_plan() -> FloorPlan:
 
 
 def floor(seed: int = 0) -> Scene:
-    """A building floor, about 24 x 14 x 2.7 m: a corridor with seven rooms behind door
+    """A building floor, 24.3 x 14.4 x 2.7 m: a corridor with seven rooms behind door
     openings (1 m wide, 2.1 m high); rooms 1-5 in the main wing, rooms 6-7 in an east wing
     turned 42 degrees (room 6 fills the wedge between the wings); furniture in every room
     (desks, chairs, shelves, cabinets, boxes) aligned with its walls, and two cabinets in
@@ -297,7 +297,7 @@ def floor(seed: int = 0) -> Scene:
     # Walls (boxes on the rooms' side of the corridor lines).
     _wall(L, (0, 4.5), O, h, [door[r][0] for r in ("room1", "room2", "room3")], side=-1)
     _wall(L, (0, 6.5), Q, h, [door[r][0] for r in ("room4", "room5")], side=+1)
-    _wall(L, O, wing(WING_LEN, 0), h, [2.8, 8.7], side=-1)
+    _wall(L, O, wing(WING_LEN, 0), h, [float((door[r] - O) @ g["d"]) for r in ("room6", "room7")], side=-1)
     for x in (4.0, 8.0):
         L.box(x, 4.5 / 2 - 0.06, _T_WALL, 4.5 - 0.12, h)
     L.box(12.0 + _T_WALL / 2, 2.25, _T_WALL, 4.5, h)  # room 3 | room 6 (also fills the corner at O)
