@@ -201,6 +201,15 @@ def test_nodes_talk_discover_and_fetch_static_transforms_late(ros_router, capsys
         assert info.attachment.sequence_number == 1 and info.attachment.gid == pub.gid
         assert abs(info.attachment.source_timestamp - time.time_ns()) < 10e9
         assert sub.counts.malformed == 1 and sub.counts.delivered == 4
+        # and the other way: a Humble publisher (TypeHashNotSupported key) to a Jazzy subscription
+        from_humble = []
+        talker.create_subscription("/from_humble", STRING, lambda m, i: from_humble.append((m.data, i.key)))
+        time.sleep(0.3)
+        listener.create_publisher("/from_humble", STRING).publish(String(data="humble says hi"))
+        deadline = time.monotonic() + 5
+        while not from_humble and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert from_humble == [("humble says hi", "0/from_humble/std_msgs::msg::dds_::String_/TypeHashNotSupported")]
         graph = rz.discover(s_sub, 0)
         kinds = {(e.kind, e.node_name, e.topic, e.type_hash) for e in graph}
         assert (rz.NODE, "listener", None, None) in kinds and (rz.NODE, "talker", None, None) in kinds

@@ -313,13 +313,34 @@ def graph_key(domain_id: int | None = None) -> str:
 
 
 def discover(session, domain_id: int | None = None, timeout: float = 2.0) -> list[Entity]:
-    """The ROS graph now: every entity whose liveliness token is alive (unparsable ones skipped)."""
+    """The ROS graph: every entity whose liveliness token is alive, as a graph cache builds it
+    (a liveliness get, and a liveliness subscriber with history for ``timeout`` seconds, so
+    tokens that reach this session late are counted too; unparsable tokens skipped)."""
+    import zenoh
+
+    alive: dict[str, bool] = {}
+    lock = threading.Lock()
+
+    def on_token(sample) -> None:
+        with lock:
+            alive[str(sample.key_expr)] = sample.kind == zenoh.SampleKind.PUT
+
+    key = graph_key(domain_id)
+    sub = session.liveliness().declare_subscriber(key, on_token, history=True)
+    try:
+        for reply in session.liveliness().get(key, timeout=timeout):
+            if reply.ok is not None:
+                with lock:
+                    alive.setdefault(str(reply.ok.key_expr), True)
+        time.sleep(0.2)
+    finally:
+        sub.undeclare()
     out = []
-    for reply in session.liveliness().get(graph_key(domain_id), timeout=timeout):
-        if reply.ok is None:
+    for k, up in sorted(alive.items()):
+        if not up:
             continue
         try:
-            out.append(Entity.parse(str(reply.ok.key_expr)))
+            out.append(Entity.parse(k))
         except ValueError as e:
             log.debug("skipping liveliness token: %s", e)
     return out
