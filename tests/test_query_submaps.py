@@ -316,6 +316,28 @@ def test_answers_equal_the_submap_mappers_own_blend():
     np.testing.assert_allclose(rep.gradient, g_ref, atol=1e-4)
 
 
+def test_surfel_moves_below_the_tolerance_keep_samples_and_never_add_up():
+    from aisdf_query.engine import surfel_changes
+
+    def surfels(dx):
+        return Surfels(center=[[dx, 0, 1.0], [2, 0, 1]], normal=[[1.0, 0, 0], [0, 1.0, 0]],
+                       axis1=[[0, 1.0, 0], [1.0, 0, 0]], axis2=[[0, 0, 1.0]] * 2, extent=[[1.0, 1.0]] * 2,
+                       direction=[0, 1], keyframe=[0, 1])
+
+    s0 = surfels(0.0)
+    boxes, ref = surfel_changes(s0, surfels(0.0004), 0.001)
+    assert len(boxes) == 0 and ref.center[0, 0] == 0.0  # unchanged: the reference stays
+    boxes, ref = surfel_changes(ref, surfels(0.0008), 0.001)
+    assert len(boxes) == 0 and ref.center[0, 0] == 0.0
+    boxes, ref = surfel_changes(ref, surfels(0.0012), 0.001)  # 1.2 mm from what was baked
+    assert len(boxes) == 2 and sorted(ref.center[:, 0]) == [0.0012, 2.0]
+    assert len(surfel_changes(s0, surfels(1e-6), 0.0)[0]) == 2  # no tolerance: any move
+    flipped = surfels(0.0)
+    flipped.normal[0] *= -1  # the other side of the wall: another surface
+    assert len(surfel_changes(s0, flipped, 0.001)[0]) == 2
+    assert len(surfel_changes(s0, surfels(0.0)[[1]], 0.001)[0]) == 1  # one gone
+
+
 def test_submap_ordering_epochs_and_bad_snapshots(submap_map):
     m = submap_map
     e = engine_of(m)

@@ -39,5 +39,8 @@ class QueryConfig(ServiceConfig):
                             "the field at its centre by more (m)")
     bake_near_surface: bool = Field(False, description="baked field: also refine every block a surface may cross")
     bake_band: float = Field(0.05, ge=0, description="baked field: extra margin (m) of the near-surface test")
+    bake_surfel_tol: float = Field(0.001, ge=0, description="baked field: a re-bake keeps the samples around a surfel "
+                                   "that moved less than this (m; every surfel moves a little whenever the Atlanta "
+                                   "frame is refined); 0 = re-evaluate around every change")
     workers: int = Field(2, ge=1, le=64, description="threads evaluating sdf requests")
     queue_max: int = Field(32, ge=1, description="sdf requests waiting; beyond, an immediate 'busy' error reply")

@@ -145,26 +145,60 @@ def union_observed(grids: list[ObservedGrid], align: float) -> ObservedGrid | No
     return ObservedGrid(origin, voxel, occ)
 
 
-def surfel_changes(old: Surfels | None, new: Surfels | None) -> np.ndarray | None:
-    """(K, 2, 3) world boxes of the surfels in one map and not the other (added, removed or
-    changed), or None when everything is to be treated as changed."""
-    rows = []
-    for s in (old, new):
-        if s is None or not len(s):
-            rows.append(np.zeros((0, 15)))
-            continue
-        rows.append(np.concatenate([s.center, s.normal, s.axis1, s.axis2, s.extent,
-                                    s.direction[:, None].astype(np.float64)], axis=1))
-    keys = [{r.tobytes(): i for i, r in enumerate(np.ascontiguousarray(x))} for x in rows]
-    boxes = []
-    for (mine, other), x in zip(((keys[0], keys[1]), (keys[1], keys[0])), rows):
-        idx = [i for k, i in mine.items() if k not in other]
-        if not idx:
-            continue
-        r = x[idx]
-        half = 0.5 * (np.abs(r[:, 6:9]) * r[:, 12:13] + np.abs(r[:, 9:12]) * r[:, 13:14])
-        boxes.append(np.stack([r[:, 0:3] - half, r[:, 0:3] + half], axis=1))
-    return np.concatenate(boxes) if boxes else np.zeros((0, 2, 3))
+def _half_axes(s: Surfels) -> tuple[np.ndarray, np.ndarray]:
+    return 0.5 * s.axis1 * s.extent[:, :1], 0.5 * s.axis2 * s.extent[:, 1:2]
+
+
+def _surfel_box(s: Surfels) -> np.ndarray:
+    """(N, 2, 3) world boxes of the rectangles."""
+    h1, h2 = _half_axes(s)
+    half = np.abs(h1) + np.abs(h2)
+    return np.stack([s.center - half, s.center + half], axis=1)
+
+
+def surfel_changes(ref: Surfels | None, new: Surfels | None, tol: float = 0.0) -> tuple[np.ndarray, Surfels | None]:
+    """Which surfels changed between ``ref`` (the surfels the previous bake's samples were
+    computed with) and ``new``: (boxes (K, 2, 3) of the changed ones, old and new
+    geometry, the new reference). A surfel of ``new`` is unchanged when one of ``ref``
+    (nearest centre, same direction, matched once) lies within ``tol`` of it: no point of
+    the rectangle moved more than ``tol`` (centre move plus the moves of its half axes), so
+    no distance to it changed more than that. An unchanged surfel keeps its reference
+    geometry (so small moves never add up unnoticed: a sample is at most 2 tol off); a
+    changed or new one takes its new geometry, a gone one leaves the reference."""
+    empty = np.zeros((0, 2, 3))
+    if new is None or not len(new):
+        return (_surfel_box(ref) if ref is not None and len(ref) else empty), new
+    if ref is None or not len(ref):
+        return _surfel_box(new), new
+    from scipy.spatial import cKDTree
+
+    k = min(4, len(ref))
+    _, nn = cKDTree(ref.center).query(new.center, k=k)
+    nn = nn.reshape(len(new), k)
+    r1, r2 = _half_axes(ref)
+    n1, n2 = _half_axes(new)
+    match = np.full(len(new), -1)
+    taken = np.zeros(len(ref), bool)
+    best = np.full(len(new), np.inf)
+    for c in range(k):
+        j = nn[:, c]
+        move = (np.linalg.norm(new.center - ref.center[j], axis=1)
+                + np.minimum(np.linalg.norm(n1 - r1[j], axis=1), np.linalg.norm(n1 + r1[j], axis=1))
+                + np.minimum(np.linalg.norm(n2 - r2[j], axis=1), np.linalg.norm(n2 + r2[j], axis=1)))
+        ok = (move <= tol) & (new.direction == ref.direction[j]) & (move < best)
+        # normals pointing the other way are another surface (a surfel is one-sided)
+        ok &= np.sum(new.normal * ref.normal[j], axis=1) > 0
+        best[ok], match[ok] = move[ok], j[ok]
+    for i in np.argsort(best):  # one reference surfel per new one
+        if match[i] >= 0:
+            if taken[match[i]]:
+                match[i] = -1
+            else:
+                taken[match[i]] = True
+    same = match >= 0
+    boxes = [_surfel_box(new[~same]), _surfel_box(ref[~taken])]
+    out = Surfels.concat([ref[match[same]], new[~same]])
+    return np.concatenate(boxes), out
 
 
 def in_boxes(points: np.ndarray, boxes: np.ndarray, grow: float, cell: float = 1.0) -> np.ndarray:
@@ -197,13 +231,14 @@ def in_boxes(points: np.ndarray, boxes: np.ndarray, grow: float, cell: float = 1
 class BakedMap:
     state: MapState  # the map it was baked from (its network answers points outside the bake)
     field: BakedField
+    surfel_ref: Surfels | None = None  # the surfels its samples were computed with (within bake_surfel_tol)
 
 
 class QueryEngine:
     def __init__(self, max_points: int = 1_000_000, chunk_points: int = 65_536, device: str = "auto",
                  fuse_radius: float = 0.5, mesh_resolution: float = 0.05, mesh_max_cells: int = 16_000_000,
                  bake: bool = True, bake_config: BakeConfig | None = None, bake_threads: int = 2,
-                 bake_duty: float = 0.75, bake_nice: int = 10, mesh_tile: int = 64):
+                 bake_duty: float = 0.75, bake_nice: int = 10, mesh_tile: int = 64, surfel_tol: float = 0.001):
         self.max_points = max_points
         self.chunk_points = chunk_points
         self.device = pick_device(device)
@@ -213,6 +248,7 @@ class QueryEngine:
         if mesh_tile < 2:
             raise ValueError("mesh_tile must be at least 2 samples")
         self.mesh_tile = int(mesh_tile)
+        self.surfel_tol = float(surfel_tol)
         self._index: protocol.SubmapIndex | None = None  # the newest map/index (protocol 1.3)
         self.bake_enabled = bake
         self.bake_config = bake_config or BakeConfig()
@@ -237,7 +273,7 @@ class QueryEngine:
                    cfg.mesh_max_cells, cfg.bake,
                    BakeConfig(block=cfg.bake_block, fine=cfg.bake_fine, band=cfg.bake_band, tol=cfg.bake_tol,
                               near_surface=cfg.bake_near_surface), cfg.bake_threads, cfg.bake_duty, cfg.bake_nice,
-                   cfg.mesh_tile)
+                   cfg.mesh_tile, cfg.bake_surfel_tol)
 
     # ------------------------------------------------------------------ map updates
 
@@ -448,13 +484,15 @@ class QueryEngine:
                         self._baked = BakedMap(st, cur.field)
             return self._baked
         t = time.perf_counter()
-        dirty = self._dirty(cur.state, st) if cur is not None else None
+        dirty, ref = self._dirty(cur, st) if cur is not None else (None, st.surfels)
         previous = cur.field if dirty is not None else None
+        if dirty is None:
+            ref = st.surfels
         fld = bake(self.fused_fn(st), st.observed, self.bake_config, previous=previous, dirty=dirty)
         with self._lock:
             cur = self._baked
             if cur is None or cur.state.order <= st.order:
-                self._baked = BakedMap(st, fld)
+                self._baked = BakedMap(st, fld, ref)
         self.bakes += 1
         self.last_bake = {**fld.stats, "wall_s": round(time.perf_counter() - t, 3), "version": st.version,
                           "epoch": st.epoch}
@@ -463,22 +501,25 @@ class QueryEngine:
                  fld.stats["reused"], self.last_bake["wall_s"], fld.nbytes / 1e6)
         return self._baked
 
-    def _dirty(self, old: MapState, new: MapState):
-        """Where the fused field of ``new`` may differ from ``old``'s: a function of world points
-        (M, 3) -> (M,) bool, or None when it may differ everywhere (a new network, a new
-        mapper incarnation or grid). The blend at a point depends only on the submaps whose
-        extended boxes hold it; the fused answer only on surfels within ``fuse_radius``."""
+    def _dirty(self, baked: BakedMap, new: MapState):
+        """Where the fused field of ``new`` may differ from the samples of ``baked``: (a
+        function of world points (M, 3) -> (M,) bool, or None when it may differ everywhere
+        (a new network, a new mapper incarnation or grid); the new surfel reference). The
+        blend at a point depends only on the submaps whose extended boxes hold it; the fused
+        answer only on surfels within ``fuse_radius`` (surfels that moved less than
+        ``surfel_tol``, as all do a little when the Atlanta frame is refined, count as unchanged)."""
+        old = baked.state
         if (old.submaps is None) != (new.submaps is None) or old.epoch != new.epoch:
-            return None
+            return None, new.surfels
         if new.submaps is None:
             if old.net is not new.net:
-                return None
+                return None, new.surfels
             changed, grid, cells = [], None, None
         else:
             if not old.submaps.grid.same_as(new.submaps.grid):
-                return None
+                return None, new.surfels
             changed, grid, cells = new.submaps.changed_since(old.submaps), new.submaps.grid, set(new.submaps.submaps)
-        boxes = surfel_changes(old.surfels, new.surfels)
+        boxes, ref = surfel_changes(baked.surfel_ref, new.surfels, self.surfel_tol)
         grow = self.fuse_radius + 0.05
 
         def dirty(points: np.ndarray) -> np.ndarray:
@@ -492,7 +533,7 @@ class QueryEngine:
                     d[idx] = True
             return d
 
-        return dirty
+        return dirty, ref
 
     def _lower_priority(self) -> None:
         """Bake with a lower CPU priority (Linux nice is per thread): a mapper or the answers

@@ -1,0 +1,116 @@
+"""``python -m aisdf_query.bench_submaps``: what the query service's bake costs as a submap
+map grows, incremental (re-evaluating only around the submaps and surfels that changed)
+against a full bake of the same map, and the tiled mesh's memory.
+
+A SubmapPipeline walks a synthetic building (the floor by default) at a few training steps
+per keyframe; after every ``--period`` keyframes its messages of that period (only the
+submaps trained since their last publication, the index and the surfels, as the mapper
+publishes them) go into a QueryEngine, which bakes. From ``--bake-from`` keyframes on, per period it prints the submaps,
+those that changed, the blocks baked, and the evaluations and seconds of the incremental
+bake and of a full bake of the same map (the same field: their answers are compared).
+Figures, not assertions: the machine's load changes the seconds, not the evaluations."""
+
+from __future__ import annotations
+
+import argparse
+import time
+import tracemalloc
+
+import numpy as np
+import torch
+
+from aisdf import protocol
+from aisdf.baked import bake
+from aisdf.mapping.frames import Frame
+from aisdf.submaps.pipeline import SubmapPipeline
+from aisdf.synthetic import SyntheticSequence
+
+from .engine import QueryEngine
+
+
+def feed(engine: QueryEngine, messages) -> int:
+    n = 0
+    for key, data in messages:
+        msg = protocol.unpack(data)
+        if key.startswith("map/submaps/"):
+            n += engine.set_submap(protocol.WeightSnapshot.from_msg(msg))
+        elif key == "map/index":
+            engine.set_index(protocol.SubmapIndex.from_msg(msg))
+        elif key == "map/surfels":
+            engine.set_surfels(protocol.SurfelMap.from_msg(msg))
+    return n
+
+
+def main(argv: list[str] | None = None) -> None:
+    ap = argparse.ArgumentParser(prog="python -m aisdf_query.bench_submaps", description=__doc__.split("\n\n")[0])
+    ap.add_argument("--building", default="floor")
+    ap.add_argument("--frames", type=int, default=3000, help="frames of the walk (one keyframe every --every)")
+    ap.add_argument("--every", type=int, default=30)
+    ap.add_argument("--steps", type=int, default=3, help="training steps per keyframe")
+    ap.add_argument("--period", type=int, default=2, help="keyframes per publication period")
+    ap.add_argument("--bake-from", type=int, default=60, help="first keyframe after which the map is baked (before: "
+                    "only published into the engine)")
+    ap.add_argument("--width", type=int, default=32, help="network width (the bake's cost is per evaluation)")
+    ap.add_argument("--mesh-resolution", type=float, default=0.1)
+    args = ap.parse_args(argv)
+    torch.set_num_threads(1)
+    seq = SyntheticSequence(building=args.building, n_frames=args.frames, H=60, W=80, seed=0)
+    p = SubmapPipeline.from_settings("cpu", {"network": {"width": args.width}, "n_rays": 40})
+    e = QueryEngine(device="cpu", bake_threads=1)
+    version = 0
+    print(f"{args.building}: {args.frames} frames, a keyframe every {args.every}, {args.steps} steps each, "
+          f"published every {args.period} keyframes; width {args.width}")
+    print("| version | keyframes | submaps | changed | blocks | incremental: evaluations / s | full: evaluations / s "
+          "| max difference (m) |")
+    print("|---|---|---|---|---|---|---|---|")
+    totals = np.zeros(4)
+    for n, i in enumerate(range(0, args.frames, args.every), start=1):
+        f = seq.frame(i)
+        p.add_keyframe(Frame(f["frame_id"], f["stamp"], f["depth"], f["K"], f["T_WC"]))
+        for _ in range(args.steps):
+            if p.submaps:
+                p.step()
+        if n % args.period:
+            continue
+        version += 1
+        changed = feed(e, p.map_messages(version, changed_only=True, epoch=1))
+        if e.state is None or e.state.observed is None or n < args.bake_from:
+            continue
+        first = e.baked is None
+        for sm in e.state.submaps.submaps.values():  # warm the new networks up (torch's first call)
+            e._implicit(sm.net, np.zeros((64, 3), np.float32), True)
+        t = time.perf_counter()
+        inc = e.bake_now().field
+        t_inc = time.perf_counter() - t
+        t = time.perf_counter()
+        full = bake(e.fused_fn(e.state), e.state.observed, e.bake_config)
+        t_full = time.perf_counter() - t
+        pts = e.state.observed.origin + np.random.default_rng(version).uniform(
+            0, 1, (20_000, 3)) * (e.state.observed.bounds[1] - e.state.observed.origin)
+        fa, _, ca = inc.query(pts, False)
+        fb, _, cb = full.query(pts, False)
+        diff = float(np.abs(fa - fb)[ca & cb].max()) if (ca & cb).any() else 0.0
+        assert (ca == cb).all()
+        if not first:
+            totals += [inc.stats["evaluations"], t_inc, full.stats["evaluations"], t_full]
+        print(f"| {version} | {p.n_keyframes} | {len(e.state.submaps.submaps)} | {changed} | {inc.stats['blocks']:,} "
+              f"| {inc.stats['evaluations']:,} / {t_inc:.2f} | {full.stats['evaluations']:,} / {t_full:.2f} "
+              f"| {diff:.1e} |", flush=True)
+    print(f"after the first bake, in all: incremental {int(totals[0]):,} evaluations in {totals[1]:.1f} s, full "
+          f"{int(totals[2]):,} in {totals[3]:.1f} s ({totals[0] / max(totals[2], 1):.2f} of the evaluations)")
+    # The whole map's mesh, tiled, and its peak numpy memory against one tile for the whole box.
+    for tile in (64, 100_000):
+        e.mesh_tile = tile
+        tracemalloc.start()
+        t = time.perf_counter()
+        m = e.answer_mesh(protocol.MeshRequest(args.mesh_resolution))
+        dt = time.perf_counter() - t
+        peak = tracemalloc.get_traced_memory()[1]
+        tracemalloc.stop()
+        n_cells = np.prod(np.ceil((e.state.bounds[1] - e.state.bounds[0]) / args.mesh_resolution + 5))
+        print(f"mesh at {args.mesh_resolution} m ({int(n_cells):,} samples), tiles of {min(tile, 10 ** 9)}^3: "
+              f"{len(m.vertices):,} vertices, {len(m.faces):,} faces, {dt:.1f} s, peak numpy memory {peak / 1e6:.0f} MB")
+
+
+if __name__ == "__main__":
+    main()
