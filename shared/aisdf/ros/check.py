@@ -106,7 +106,8 @@ def check_frames(frames: list[dict], up=UP, max_down_deg: float = 70.0, min_moti
         if good.mean() < 0.5:
             problems.append(
                 f"consecutive depth images disagree once placed with these poses: in {int((~good).sum())} of "
-                f"{len(pairs)} moving pairs the poses explain the depth no better than no motion at all (median "
+                f"{len(pairs)} moving pairs the poses explain the depth hardly better than no motion at all, or worse "
+                f"(median "
                 f"residual {figs['depth_residual_posed_cm']:.1f} cm posed vs {figs['depth_residual_no_motion_cm']:.1f}"
                 f" cm unmoved): the camera's motion in the TF chain is not the motion the images see (a wrong or "
                 f"missing rotation in the chain, or poses of another frame)")
