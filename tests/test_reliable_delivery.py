@@ -119,11 +119,14 @@ def test_mapper_deduplicates_and_acknowledges(tmp_path):
     assert [(a.sensor, a.frame_ids) for a in s.acks()] == [("depth", [4, 4, 0])]
     assert node.pipeline.n_keyframes == 5 and node.seen == {("depth", i) for i in range(5)}
     assert node.counts == {"received": 9, "rejected": 1, "dropped": 1, "accepted": 5, "duplicates": 2}
-    # Dedup is by (sensor, frame_id), but the pipeline keeps frame ids unique per map: another
-    # sensor's frame 3 is refused for good (and acknowledged as such, so it is not resent).
+    # Keyframes are identified by (sensor, frame_id) (protocol 1.3): another sensor's frame 3
+    # is a different keyframe, added and acknowledged; the same again is a duplicate.
     node.on_keyframe(room_keyframe(3, sensor="left"))
     node._add_pending()
-    assert [(a.sensor, a.frame_ids, a.rejected) for a in s.acks()] == [("left", [], [3])]
+    assert [(a.sensor, a.frame_ids, a.rejected) for a in s.acks()] == [("left", [3], [])]
+    assert node.pipeline.n_keyframes == 6
+    node.on_keyframe(room_keyframe(3, sensor="left"))
+    assert [(a.sensor, a.frame_ids) for a in s.acks()] == [("left", [3])] and node.pipeline.n_keyframes == 6
     print("mapper counts:", node.counts)
 
 
@@ -141,7 +144,7 @@ def test_dedup_and_versions_survive_a_crash(tmp_path):
     for _ in range(3):
         node._publish()
     epoch1, published = node.epoch, node.version
-    maps = [m for k, m in node.session.puts if k.endswith("map/weights")]
+    maps = [m for k, m in node.session.puts if k.endswith("map/index")]  # one per publication
     assert [m["epoch"] for m in maps] == [epoch1] * 4 and [m["version"] for m in maps] == [1, 2, 3, 4]
     assert (tmp_path / JOURNAL_NAME).stat().st_size > 0
     del node  # killed: no checkpoint written after the journal
@@ -154,7 +157,7 @@ def test_dedup_and_versions_survive_a_crash(tmp_path):
     again._add_pending()
     assert again.pipeline.n_keyframes == 5 and again.counts["duplicates"] == 4 and again.counts["accepted"] == 1
     again._publish()
-    (m,) = [m for k, m in again.session.puts if k.endswith("map/weights")]
+    (m,) = [m for k, m in again.session.puts if k.endswith("map/index")]
     assert m["version"] == published + 1 and m["epoch"] == again.epoch
     print(f"epochs {epoch1} -> {again.epoch}; versions ..{published} -> {m['version']}")
     # A torn journal record (a crash mid-append) is ignored.

@@ -139,11 +139,11 @@ def test_planner_gets_answers_and_reads_maps(deployment):
         r = wait_for(lambda: sdf_answer(planner), 120, period=1.0, what="a planner's query/sdf answer")
         got = []
         sub = planner.declare_subscriber(keys.key(NS, "map/**"), lambda s: got.append(str(s.key_expr)))
-        weights = transport.get_latest(planner, keys.key(NS, keys.MAP_WEIGHTS), 3.0)
+        weights = transport.get_latest(planner, keys.key(NS, keys.MAP_INDEX), 3.0)  # the map (1.3: submaps)
         wait_for(lambda: got, 10, what="a map snapshot on the planner's subscriber")
         sub.undeclare()
         print(f"planner: answered by map version {r['map_version']} (epoch {r.get('map_epoch')}); "
-              f"got map/weights version {weights and weights['version']}; subscriber saw {sorted(set(got))}")
+              f"got map/index version {weights and weights['version']}; subscriber saw {sorted(set(got))}")
         assert r["sdf"]["shape"] == [8] and r["map_version"] >= 1
         assert weights is not None and weights["version"] >= 1
         # ... and nothing else: not the services' info, not the keyframes
@@ -206,17 +206,26 @@ def test_planner_publishing_keyframes_or_maps_changes_nothing(deployment):
 
         # maps: only the mapper's reach the query service
         q0 = info(d, "query")
-        msg = transport.get_latest(d["monitor"], keys.key(NS, keys.MAP_WEIGHTS), 3.0)
-        msg["version"], msg["epoch"] = 10**9, 10**15
+        # a forged map: one of the mapper's submaps and an index listing it, from a far future
+        index = transport.get_latest(d["monitor"], keys.key(NS, keys.MAP_INDEX), 3.0)
+        sid = next(iter(index["submaps"]))
+        sub = transport.get_latest(d["monitor"], keys.key(NS, f"{keys.MAP_SUBMAPS}/{sid}"), 3.0)
+        sub["version"], sub["epoch"] = 10**9, 10**15
+        index.update(version=10**9, epoch=10**15, submaps={sid: {"version": 10**9, "step": sub["step"]}})
+
+        def forge(session):
+            transport.put(session, keys.key(NS, f"{keys.MAP_SUBMAPS}/{sid}"), sub)
+            transport.put(session, keys.key(NS, keys.MAP_INDEX), index)
+
         for s in (planner, frontend):
-            transport.put(s, keys.key(NS, keys.MAP_WEIGHTS), msg)
+            forge(s)
         time.sleep(3.0)
         q1 = info(d, "query")
         print(f"query service map version before/after forged maps: {q0['version']} / {q1['version']}")
         assert q1["version"] < 10**9 and q1["epoch"] < 10**15
         # the same forged map from the mapper identity is taken (so the check above can fail)
         with transport.open_session(opts(d["conf"]["mapper"])) as mapper:
-            transport.put(mapper, keys.key(NS, keys.MAP_WEIGHTS), msg)
+            forge(mapper)
             q2 = wait_for(lambda: (lambda i: i if i["version"] == 10**9 else None)(info(d, "query")), 10,
                           what="the mapper identity's map at the query service")
         print(f"after the same map from the mapper identity: {q2['version']}")

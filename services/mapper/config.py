@@ -22,7 +22,7 @@ class MapperConfig(ServiceConfig):
     atlanta: bool = Field(True, description="estimate the Atlanta frame and surfels, publish map/surfels")
     surfel_mask: bool = Field(True, description="Table II switch: sample iSDF rays off surfels, points on surfels")
     surfel_loss: bool = Field(True, description="Table II switch: the surfel loss on surfel points")
-    submaps: bool = Field(False, description="one network per submap (protocol 1.3: map/submaps/<id> and map/index, "
+    submaps: bool = Field(True, description="one network per submap (protocol 1.3: map/submaps/<id> and map/index, "
                           "only what changed each period); false = one network for the whole map (map/weights)")
     submap: SubmapConfig = Field(default_factory=SubmapConfig, description="submap cells and step sharing")
     queue_max: int = Field(16, ge=1, description="keyframes waiting to be trained on; the oldest is dropped beyond")
