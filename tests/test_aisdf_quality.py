@@ -14,11 +14,11 @@ import numpy as np
 import pytest
 import torch
 
-from aisdf.fusion import fuse
+from aisdf.structure.fusion import fuse
 from aisdf.mapping.frames import Frame
 from aisdf.metrics import eval_points
 from aisdf.pipeline import MappingPipeline
-from aisdf.surfel_map import explicit_sdf
+from aisdf.structure.surfel_map import explicit_sdf
 from aisdf.synthetic import SyntheticSequence
 
 torch.set_num_threads(1)

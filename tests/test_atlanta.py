@@ -5,9 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from aisdf.atlanta import AtlantaConfig, AtlantaEstimator, AtlantaFrame
-from aisdf.atlanta_init import axial_modes
-from aisdf.surfels import keyframe_points
+from aisdf.structure.atlanta import AtlantaConfig, AtlantaEstimator, AtlantaFrame
+from aisdf.structure.atlanta_init import axial_modes
+from aisdf.structure.surfels import keyframe_points
 from atlanta_scene import Box, atlanta_room, camera, manhattan_room, trajectory
 
 H, W = 120, 160

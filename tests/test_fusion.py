@@ -2,7 +2,7 @@
 
 import numpy as np
 
-from aisdf.fusion import fuse
+from aisdf.structure.fusion import fuse
 
 
 def test_fuse_takes_the_smaller_distance_near_a_surfel():

@@ -11,7 +11,7 @@ from aisdf.mapping.bounds import batch_bounds
 from aisdf.mapping.frames import Keyframe
 from aisdf.mapping.losses import eikonal_term, grad_term, sdf_term, training_loss
 from aisdf.mapping.sampling import FREE, SURFACE, SURFEL, ray_depths, sample_batch, sample_frame
-from aisdf.surfel_types import Surfels
+from aisdf.structure.surfel_types import Surfels
 
 torch.set_num_threads(1)  # 2 threads stall badly when another process holds a core
 

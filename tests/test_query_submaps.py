@@ -26,7 +26,7 @@ from aisdf.observed import ObservedGrid, ObservedSpace
 from aisdf.stack import Stack, wait_for
 from aisdf.submaps.field import blend
 from aisdf.submaps.grid import SubmapGrid, cell_id
-from aisdf.surfel_types import Surfels
+from aisdf.structure.surfel_types import Surfels
 from aisdf.synthetic import SyntheticSequence
 from aisdf_query.engine import MapState, QueryEngine, tiled_marching_cubes
 

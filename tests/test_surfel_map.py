@@ -8,11 +8,11 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from aisdf.atlanta import AtlantaEstimator
+from aisdf.structure.atlanta import AtlantaEstimator
 from aisdf.geometry import backproject, transform
-from aisdf.surfel_map import ExplicitSdf, GlobalSurfelMap, SurfelMapConfig, explicit_sdf
-from aisdf.surfel_types import Surfels
-from aisdf.surfels import extract_surfels, keyframe_points
+from aisdf.structure.surfel_map import ExplicitSdf, GlobalSurfelMap, SurfelMapConfig, explicit_sdf
+from aisdf.structure.surfel_types import Surfels
+from aisdf.structure.surfels import extract_surfels, keyframe_points
 from atlanta_scene import atlanta_room, camera, trajectory
 
 

@@ -7,12 +7,12 @@ import time
 import numpy as np
 import pytest
 
-from aisdf.atlanta import AtlantaEstimator
+from aisdf.structure.atlanta import AtlantaEstimator
 from aisdf.geometry import backproject, transform
-from aisdf.surfel_config import SurfelConfig
-from aisdf.surfel_fit import find_planes, find_rectangles
-from aisdf.surfel_map import explicit_sdf
-from aisdf.surfels import extract_surfels, keyframe_points
+from aisdf.structure.surfel_config import SurfelConfig
+from aisdf.structure.surfel_fit import find_planes, find_rectangles
+from aisdf.structure.surfel_map import explicit_sdf
+from aisdf.structure.surfels import extract_surfels, keyframe_points
 from atlanta_scene import atlanta_room, camera, trajectory
 
 

@@ -43,12 +43,12 @@ import torch
 from aisdf import protocol
 from aisdf.baked import BakeConfig, BakedField, bake
 from aisdf.collision import chomp_cost
-from aisdf.fusion import fuse
+from aisdf.structure.fusion import fuse
 from aisdf.network import build_model, load_numpy_state
 from aisdf.observed import ObservedGrid
 from aisdf.submaps.field import assign, blend
 from aisdf.submaps.grid import SubmapGrid, parse_cell_id
-from aisdf.surfel_types import Surfels
+from aisdf.structure.surfel_types import Surfels
 
 log = logging.getLogger(__name__)
 BAKE_CHUNK = 2048  # network points per pass while baking: bounds the activations (~15 MB at width 128)
@@ -441,7 +441,7 @@ class QueryEngine:
         """points (M, 3) -> (sdf, grad) of the fused field of ``state`` (what ``fused``
         answers), in bounded memory: the network in chunks of ``chunk`` points, the
         surfels in chunks of candidate pairs."""
-        from aisdf.surfel_map import ExplicitSdf
+        from aisdf.structure.surfel_map import ExplicitSdf
 
         chunk = chunk or (BAKE_CHUNK if self.device.type == "cpu" else self.chunk_points)  # on a GPU: big batches
         explicit = ExplicitSdf(state.surfels, chunk_pairs=131_072) if state.surfels is not None and len(
@@ -624,7 +624,7 @@ class QueryEngine:
         return sdf, grad
 
     def _explicit(self, surfels: Surfels, pts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        from aisdf.surfel_map import explicit_sdf
+        from aisdf.structure.surfel_map import explicit_sdf
 
         d, g, _ = explicit_sdf(pts.astype(np.float64), surfels)
         return d.astype(np.float32), g.astype(np.float32)

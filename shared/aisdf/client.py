@@ -16,7 +16,7 @@ import numpy as np
 
 from . import keys, protocol, transport
 from .config import ZenohOptions
-from .surfel_types import Surfels
+from .structure.surfel_types import Surfels
 
 ProtocolError = protocol.ProtocolError
 

@@ -21,7 +21,7 @@ from .mapping.frames import Frame
 from .mapping.presets import training_config
 from .mapping.trainer import Trainer
 from .observed import ObservedSpace
-from .surfel_types import Surfels
+from .structure.surfel_types import Surfels
 
 MIN_VALID_PIXELS = 64
 

@@ -3,7 +3,7 @@
 A *model* is one map built from the stream (a voxel map, or one trained network); a
 *method* is a column of Table I: a model read one way. AiSDF "w/o" and "w." explicit
 map are the same trained network, read alone or fused with its surfels
-(``aisdf.fusion.fuse``, as the query service does).
+(``aisdf.structure.fusion.fuse``, as the query service does).
 
 Two modes (``run_stream``):
 
@@ -30,7 +30,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..fusion import DEFAULT_FUSE_RADIUS, fuse
+from ..structure.fusion import DEFAULT_FUSE_RADIUS, fuse
 from ..mapping.frames import Frame
 
 
@@ -228,7 +228,7 @@ class NeuralRunner(Runner):
         f = f.astype(np.float64)
         g = None if g is None else g.astype(np.float64)
         if view == "fused" and (s := self.surfels()) is not None:
-            from ..surfel_map import explicit_sdf
+            from ..structure.surfel_map import explicit_sdf
 
             d_e, g_e, _ = explicit_sdf(p, s)
             f, g, _ = fuse(f, g, d_e, g_e if grad else None, DEFAULT_FUSE_RADIUS)

@@ -15,8 +15,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from .. import geometry
-from ..surfel_types import FIELDS as SURFEL_FIELDS
-from ..surfel_types import Surfels
+from ..structure.surfel_types import FIELDS as SURFEL_FIELDS
+from ..structure.surfel_types import Surfels
 
 
 @dataclass

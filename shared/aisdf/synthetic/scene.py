@@ -20,7 +20,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from ..geometry import invert, rotate, transform
-from ..surfel_types import Surfels
+from ..structure.surfel_types import Surfels
 from .primitives import Boxes, Room
 from .raycast import face_axes, raycast
 

@@ -25,7 +25,7 @@ import numpy as np
 from pydantic import Field
 
 from .atlanta import AtlantaFrame
-from .config import Model
+from ..config import Model
 from .surfel_types import FIELDS, Surfels
 
 # ----------------------------------------------------------------------------- explicit SDF

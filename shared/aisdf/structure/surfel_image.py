@@ -8,7 +8,7 @@ from functools import lru_cache
 
 import numpy as np
 
-from .geometry import backproject, rotate, transform
+from ..geometry import backproject, rotate, transform
 from .surfel_config import SurfelConfig, choose_stride, depth_sigma, inlier_threshold
 from .surfel_types import Surfels
 

@@ -10,7 +10,7 @@ import time
 import numpy as np
 
 from .atlanta import AtlantaConfig, AtlantaEstimator, AtlantaFrame
-from .mapping.frames import Frame
+from ..mapping.frames import Frame
 from .surfel_map import GlobalSurfelMap, SurfelMapConfig
 from .surfel_types import Surfels
 from .surfels import SurfelConfig, extract_surfels, keyframe_points

@@ -7,7 +7,7 @@ from typing import Literal
 import numpy as np
 from pydantic import Field
 
-from .config import Model
+from ..config import Model
 
 
 class SurfelConfig(Model):

@@ -42,7 +42,7 @@ from pydantic import Field
 from scipy.ndimage import gaussian_filter1d
 
 from .atlanta_init import choose_vertical, perpendicular, refine_vertical, smallest_eig, unit, vertical_lsq
-from .config import Model
+from ..config import Model
 
 
 class AtlantaConfig(Model):
