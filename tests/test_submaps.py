@@ -144,6 +144,38 @@ def test_keyframes_create_submaps_and_steps_train_only_what_is_in_view():
     assert all(v.depth is p.frames[v.frame.key].depth for v in views)
 
 
+def test_a_new_submap_starts_from_its_most_trained_neighbour():
+    _, frames = office_frames()
+    p = small_pipeline(refine_every=0)
+    p.add_keyframe(frames[0])
+    for _ in range(5):
+        p.step()
+    first = set(p.submaps)
+    trained = {c: sm.trainer.steps for c, sm in p.submaps.items()}
+    for f in frames[1:]:
+        p.add_keyframe(f)
+        new = set(p.submaps) - first
+        if new:
+            break
+    c = sorted(new)[0]
+    sm = p.submaps[c]
+    donors = [d for d in first if max(abs(d[i] - c[i]) for i in range(3)) == 1 and trained[d] > 0]
+    assert donors, "the walk moves into a cell next to a trained one"
+    if donors:  # warm: the same network (weights and encoding centre) as the most trained neighbour
+        d = max(donors, key=lambda x: (trained[x], cell_id(x)))
+        a, b = sm.trainer.state_numpy(), p.submaps[d].trainer.state_numpy()
+        assert all(np.array_equal(a[k], b[k]) for k in a)
+        assert sm.trainer.cfg.network.offset == p.submaps[d].trainer.cfg.network.offset
+    cold = small_pipeline(refine_every=0, warm_start=False)
+    cold.add_keyframe(frames[0])
+    for _ in range(5):
+        cold.step()
+    for f in frames[1:]:
+        cold.add_keyframe(f)
+    for cc, s2 in cold.submaps.items():  # fresh networks are centred on their own cells
+        assert np.allclose(s2.trainer.cfg.network.offset, cold.grid.centre_W(cc))
+
+
 def test_only_changed_submaps_are_published_and_messages_decode():
     _, frames = office_frames()
     p = small_pipeline(refine_every=0)
