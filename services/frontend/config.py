@@ -78,7 +78,7 @@ class FrontendConfig(ServiceConfig):
 
     source: str = Field("synthetic", description="synthetic, or a dataset kind (generic, 7scenes, tum, ...)")
     path: Path | None = Field(None, description="dataset folder, or the recording for rosbag (not for synthetic)")
-    building: str = Field("office", description="synthetic building: office, manhattan, atlanta, stairs, ...")
+    building: str = Field("office", description="synthetic building: office, manhattan, atlanta, stairs, floor (a multi-room floor), ...")
     seed: int = Field(0, description="synthetic building, trajectory and noise seed")
     n_frames: int = Field(900, ge=1, description="synthetic sequence length (frames)")
     width: int = Field(160, ge=8, description="synthetic image width")

@@ -233,7 +233,7 @@ def cli(argv: list[str] | None = None) -> None:
     p.add_argument("--source", help="synthetic (default), ros2 (a live robot over rmw_zenoh) or a dataset kind: "
                    "generic, 7scenes, tum, icl, ...")
     p.add_argument("--path", help="dataset folder")
-    p.add_argument("--building", help="synthetic building (office, manhattan, atlanta, stairs)")
+    p.add_argument("--building", help="synthetic building (office, manhattan, atlanta, stairs, floor)")
     p.add_argument("--fast", action="store_true", help="as fast as possible instead of the sensor's rate")
     p.add_argument("--max-frames", type=int, help="stop after this many frames")
     r = p.add_argument_group("live ROS 2 robot (--source ros2, over rmw_zenoh; any ros2.* field with --set)")
