@@ -56,7 +56,8 @@ def main(argv: list[str] | None = None) -> None:
     d.add_argument("--duration", type=float, default=180.0, help="seconds to run (default 180)")
     d.add_argument("--out", default="runs/demo", help="output folder (default runs/demo)")
     d.add_argument("--building", default="office",
-                   help="synthetic building (default office; floor: the multi-room floor, --duration 270 walks all of it)")
+                   help="synthetic building (default office; floor: the multi-room floor, --duration 270 walks "
+                   "all of it)")
     d.add_argument("--seed", type=int, default=0)
     d.add_argument("--preset", default="auto", choices=["auto", "paper", "cpu"])
     d.add_argument("--max-error-cm", type=float, help="exit non-zero if the final SDF error is above this")

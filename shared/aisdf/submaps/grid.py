@@ -56,7 +56,8 @@ class SubmapGrid:
     def __post_init__(self) -> None:
         self.R_WG = np.asarray(self.R_WG, np.float64).reshape(3, 3)
         self.origin = np.asarray(self.origin, np.float64).reshape(3)
-        if not (self.cell_m > 0 and self.cell_height_m > 0 and 0 < self.overlap_m <= min(self.cell_m, self.cell_height_m) / 2):
+        smallest = min(self.cell_m, self.cell_height_m)
+        if not (self.cell_m > 0 and self.cell_height_m > 0 and 0 < self.overlap_m <= smallest / 2):
             raise ValueError("cell sizes must be positive and 0 < overlap <= half a cell")
         if not np.allclose(self.R_WG.T @ self.R_WG, np.eye(3), atol=1e-6) or np.linalg.det(self.R_WG) < 0:
             raise ValueError("R_WG must be a rotation")

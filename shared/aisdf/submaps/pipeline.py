@@ -386,7 +386,8 @@ class SubmapPipeline:
             if changed_only and sm.trainer.steps == sm.published_step:
                 continue
             sm.published_step, sm.version = sm.trainer.steps, version
-            out.append((f"{keys.MAP_SUBMAPS}/{sm.id}", protocol.pack(self.submap_snapshot(sm, version, epoch).to_msg())))
+            snap = self.submap_snapshot(sm, version, epoch)
+            out.append((f"{keys.MAP_SUBMAPS}/{sm.id}", protocol.pack(snap.to_msg())))
         out.append((keys.MAP_INDEX, protocol.pack(self.index(version, epoch).to_msg())))
         smap = self.surfel_map(version)
         if smap is not None:
