@@ -30,6 +30,33 @@ def frame_from_keyframe(kf: protocol.Keyframe) -> Frame:
     return Frame(kf.frame_id, kf.stamp, kf.depth_m(), kf.K, kf.T_WC, sensor=kf.sensor)
 
 
+def grow_bounds(bounds: np.ndarray | None, frame: Frame) -> np.ndarray:
+    """(2, 3) world box of what is seen so far, grown by a keyframe's points and camera."""
+    from .geometry import backproject, transform
+
+    d = frame.depth[::4, ::4]
+    K = frame.K.copy()
+    K[:2] /= 4
+    pts = backproject(d, K).reshape(-1, 3)
+    pts = transform(frame.T_WC, pts[np.isfinite(pts[:, 0])])
+    pts = np.concatenate([pts, frame.T_WC[None, :3, 3]])
+    lo, hi = pts.min(0), pts.max(0)
+    if bounds is None:
+        return np.stack([lo, hi])
+    return np.stack([np.minimum(bounds[0], lo), np.maximum(bounds[1], hi)])
+
+
+def surfel_map_message(structure, version: int) -> protocol.SurfelMap | None:
+    """The global surfel map with its Atlanta frame (None without structure or a frame yet)."""
+    if structure is None:
+        return None
+    frame = structure.atlanta_frame()
+    if frame is None:
+        return None
+    s = structure.global_surfels()
+    return protocol.SurfelMap(version, time.time(), frame.vertical, frame.horizontal, s.to_protocol_dict())
+
+
 class MappingPipeline:
     def __init__(self, trainer: Trainer, atlanta: bool = True, atlanta_state: dict | None = None):
         self.trainer = trainer
@@ -93,19 +120,7 @@ class MappingPipeline:
         self._timings["observed"].append(1e3 * (time.perf_counter() - t))
 
     def _grow_bounds(self, frame: Frame) -> None:
-        from .geometry import backproject, transform
-
-        d = frame.depth[::4, ::4]
-        K = frame.K.copy()
-        K[:2] /= 4
-        pts = backproject(d, K).reshape(-1, 3)
-        pts = transform(frame.T_WC, pts[np.isfinite(pts[:, 0])])
-        pts = np.concatenate([pts, frame.T_WC[None, :3, 3]])
-        lo, hi = pts.min(0), pts.max(0)
-        if self._bounds is None:
-            self._bounds = np.stack([lo, hi])
-        else:
-            self._bounds = np.stack([np.minimum(self._bounds[0], lo), np.maximum(self._bounds[1], hi)])
+        self._bounds = grow_bounds(self._bounds, frame)
 
     # ------------------------------------------------------------------ training
 
@@ -142,13 +157,7 @@ class MappingPipeline:
         return None if self.structure is None else self.structure.global_surfels()
 
     def surfel_map(self, version: int) -> protocol.SurfelMap | None:
-        if self.structure is None:
-            return None
-        frame = self.structure.atlanta_frame()
-        if frame is None:
-            return None
-        s = self.structure.global_surfels()
-        return protocol.SurfelMap(version, time.time(), frame.vertical, frame.horizontal, s.to_protocol_dict())
+        return surfel_map_message(self.structure, version)
 
     def sdf(self, points: np.ndarray) -> np.ndarray:
         return self.trainer.sdf(points)

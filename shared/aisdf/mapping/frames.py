@@ -115,17 +115,11 @@ class KeyframeStore:
 
     def add(self, frame: Frame) -> list[int]:
         """Store a frame; returns the frame_ids dropped to respect ``max_keyframes``."""
-        self.keyframes.append(Keyframe.make(frame, self.max_depth))
-        dropped = []
-        while len(self.keyframes) > self.max_keyframes:
-            old = self.keyframes[:-2]
-            i = int(np.argmin([self._loss(k) for k in old]))
-            dropped.append(self.keyframes.pop(i).frame.frame_id)
-            self.dropped += 1
-        return dropped
+        return self.add_prepared(Keyframe.make(frame, self.max_depth))
 
     def add_prepared(self, kf: Keyframe) -> list[int]:
-        """Store an already prepared keyframe (a submap's view); same memory bound as ``add``."""
+        """Store a prepared keyframe (``add``'s, or a submap's view); returns the frame_ids
+        dropped to respect ``max_keyframes`` (the lowest loss, never the newest two)."""
         self.keyframes.append(kf)
         dropped = []
         while len(self.keyframes) > self.max_keyframes:

@@ -38,7 +38,7 @@ from ..mapping.frames import Frame, Keyframe
 from ..mapping.presets import training_config
 from ..mapping.trainer import Trainer, _optimizer_from_numpy, _optimizer_to_numpy
 from ..observed import ObservedSpace
-from ..pipeline import MIN_VALID_PIXELS, frame_from_keyframe
+from ..pipeline import MIN_VALID_PIXELS, frame_from_keyframe, grow_bounds, surfel_map_message
 from .field import blend
 from .grid import SubmapGrid, cell_id, parse_cell_id
 
@@ -270,15 +270,7 @@ class SubmapPipeline:
         return ((enter <= leave) & (leave >= near) & (enter <= far) & (D > 0)).reshape(H, W)
 
     def _grow_bounds(self, frame: Frame) -> None:
-        d = frame.depth[::4, ::4]
-        K = frame.K.copy()
-        K[:2] /= 4
-        pts = geometry.backproject(d, K).reshape(-1, 3)
-        pts = geometry.transform(frame.T_WC, pts[np.isfinite(pts[:, 0])])
-        pts = np.concatenate([pts, frame.T_WC[None, :3, 3]])
-        lo, hi = pts.min(0), pts.max(0)
-        self._bounds = np.stack([lo, hi]) if self._bounds is None else np.stack(
-            [np.minimum(self._bounds[0], lo), np.maximum(self._bounds[1], hi)])
+        self._bounds = grow_bounds(self._bounds, frame)
 
     # ------------------------------------------------------------------ training
     def _pick(self) -> Submap:
@@ -399,13 +391,7 @@ class SubmapPipeline:
         return None if self.structure is None else self.structure.global_surfels()
 
     def surfel_map(self, version: int) -> protocol.SurfelMap | None:
-        if self.structure is None:
-            return None
-        frame = self.structure.atlanta_frame()
-        if frame is None:
-            return None
-        s = self.structure.global_surfels()
-        return protocol.SurfelMap(version, time.time(), frame.vertical, frame.horizontal, s.to_protocol_dict())
+        return surfel_map_message(self.structure, version)
 
     def memory(self) -> dict[str, int]:
         kf = sum(k.frame.nbytes() + k.depth.nbytes + k.normals_W.nbytes for k in self.frames.values())
