@@ -15,7 +15,7 @@ from typing import Callable
 
 import numpy as np
 
-from .grid import _OFFSETS, SubmapGrid, pack_cells, unpack_cells
+from .grid import SubmapGrid, pack_cells, unpack_cells
 
 Evaluator = Callable[[np.ndarray, bool], tuple[np.ndarray, np.ndarray | None]]
 
@@ -26,24 +26,10 @@ def assign(grid: SubmapGrid, cells, points_W: np.ndarray) -> dict[tuple[int, int
     p = np.asarray(points_W, np.float64).reshape(-1, 3)
     if not cells or not len(p):
         return {}
-    g = grid.to_grid(p)
-    size, o = grid.size, grid.overlap_m
-    base = np.floor(g / size).astype(np.int64)
-    frac = g - base * size
-    near = [(frac[:, a] < o, frac[:, a] > size[a] - o) for a in range(3)]
     have = np.sort(pack_cells(np.asarray(cells, np.int64)))
     out: dict[tuple[int, int, int], list[np.ndarray]] = {}
-    for off in _OFFSETS:
-        sel = np.ones(len(g), bool)
-        for a in range(3):
-            if off[a] == -1:
-                sel &= near[a][0]
-            elif off[a] == 1:
-                sel &= near[a][1]
-        idx = np.flatnonzero(sel)
-        if not len(idx):
-            continue
-        k = pack_cells(base[idx] + off)
+    for idx, near in grid.grown_cells(grid.to_grid(p), grid.overlap_m):
+        k = pack_cells(near)
         pos = np.clip(np.searchsorted(have, k), 0, len(have) - 1)
         ok = have[pos] == k
         if not ok.any():

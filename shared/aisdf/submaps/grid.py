@@ -114,14 +114,21 @@ class SubmapGrid:
 
     def cells_touching(self, points_W: np.ndarray, grow: float | None = None) -> dict[tuple[int, int, int], int]:
         """{cell: number of points inside its core grown by ``grow`` (default the overlap)}."""
-        g = self.to_grid(points_W)
         grow = self.overlap_m if grow is None else float(grow)
+        keys = [pack_cells(cells) for _, cells in self.grown_cells(self.to_grid(points_W), grow)]
+        if not keys:
+            return {}
+        uniq, counts = np.unique(np.concatenate(keys), return_counts=True)
+        return {tuple(int(x) for x in c): int(n) for c, n in zip(unpack_cells(uniq), counts)}
+
+    def grown_cells(self, g: np.ndarray, grow: float):
+        """For grid points ``g`` (N, 3): yields (indices, cells) for each of the 27 cells
+        around a point's own whose core grown by ``grow`` (< a cell) may hold it: a
+        neighbour below (above) along an axis when the point is within ``grow`` of that face."""
         size = self.size
         base = np.floor(g / size).astype(np.int64)
         frac = g - base * size
-        # per axis: the neighbour below (-1) / above (+1) also holds the point when it is within grow of that face
         near = [(frac[:, a] < grow, frac[:, a] >= size[a] - grow) for a in range(3)]
-        keys = []
         for off in _OFFSETS:
             sel = np.ones(len(g), bool)
             for a in range(3):
@@ -129,12 +136,9 @@ class SubmapGrid:
                     sel &= near[a][0]
                 elif off[a] == 1:
                     sel &= near[a][1]
-            if sel.any():
-                keys.append(pack_cells(base[sel] + off))
-        if not keys:
-            return {}
-        uniq, counts = np.unique(np.concatenate(keys), return_counts=True)
-        return {tuple(int(x) for x in c): int(n) for c, n in zip(unpack_cells(uniq), counts)}
+            idx = np.flatnonzero(sel)
+            if len(idx):
+                yield idx, base[idx] + off
 
     def inside(self, ijk, points_W: np.ndarray, grow: float | None = None) -> np.ndarray:
         """Points inside the core of ``ijk`` grown by ``grow`` (default the overlap)."""
