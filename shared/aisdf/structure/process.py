@@ -5,6 +5,7 @@ Pure numpy; the pipeline calls :meth:`Structure.process` for each keyframe."""
 
 from __future__ import annotations
 
+import json
 import time
 
 import numpy as np
@@ -24,6 +25,7 @@ class Structure:
         self.map = GlobalSurfelMap(surfel_map)
         self.rng = np.random.default_rng(seed)
         self.n_keyframes = 0
+        self._aligned: tuple[int, Surfels] | None = None
 
     def process(self, frame: Frame) -> dict[str, float]:
         """Fills ``frame.surfels`` and ``frame.surfel_mask``; returns timings in ms
@@ -51,6 +53,14 @@ class Structure:
             self.map.realign(f)
         return self.map.surfels()
 
+    def aligned_surfels(self) -> Surfels:
+        """The global map realigned to the current Atlanta frame, as a copy, without touching
+        the map (so that reading it changes nothing; once per keyframe, shared by its readers:
+        do not modify it)."""
+        if self._aligned is None or self._aligned[0] != self.n_keyframes:
+            self._aligned = (self.n_keyframes, self.map.aligned(self.atlanta_frame()))
+        return self._aligned[1]
+
     def stats(self) -> dict:
         f = self.atlanta_frame()
         return {"horizontal_directions": 0 if f is None else int(len(f.horizontal)),
@@ -58,9 +68,12 @@ class Structure:
 
     def state_dict(self) -> dict:
         return {"estimator": self.estimator.state_dict(), "map": self.map.state_dict(),
-                "n_keyframes": self.n_keyframes}
+                "n_keyframes": self.n_keyframes, "rng": json.dumps(self.rng.bit_generator.state)}
 
     def load_state_dict(self, state: dict) -> None:
         self.estimator.load_state_dict(state["estimator"])
         self.map.load_state_dict(state["map"])
         self.n_keyframes = int(state.get("n_keyframes", 0))
+        if state.get("rng") is not None:  # absent in checkpoints before 2026-12-02: a fresh generator
+            self.rng.bit_generator.state = json.loads(state["rng"])
+        self._aligned = None

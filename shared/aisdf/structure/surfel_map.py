@@ -47,11 +47,16 @@ def _pair_sqdist(p: np.ndarray, pack: np.ndarray, s: np.ndarray) -> np.ndarray:
 
 
 def _all_sqdist(p: np.ndarray, pack: np.ndarray) -> np.ndarray:
-    """Squared distances of every point p (n,3) to every surfel of pack (S,14): (n, S), by broadcasting."""
-    q = p[:, None, :] - pack[None, :, 0:3]
-    h = np.einsum("nsc,sc->ns", q, pack[:, 3:6])
-    du = np.maximum(np.abs(np.einsum("nsc,sc->ns", q, pack[:, 6:9])) - pack[:, 12], 0)
-    dv = np.maximum(np.abs(np.einsum("nsc,sc->ns", q, pack[:, 9:12])) - pack[:, 13], 0)
+    """Squared distances of every point p (n,3) to every surfel of pack (S,14): (n, S). The
+    projections are matrix products, (p - c)·a = p·a - c·a (pack is origin-shifted, so the
+    coordinates stay small and float32 loses nothing that matters for screening)."""
+    c = pack[:, 0:3]
+    axes = np.concatenate([pack[:, 3:6], pack[:, 6:9], pack[:, 9:12]])  # (3S, 3): normals, axis1, axis2
+    proj = p @ axes.T - np.einsum("sc,sc->s", np.tile(c, (3, 1)), axes)  # (n, 3S)
+    S = len(pack)
+    h, u, v = proj[:, :S], proj[:, S:2 * S], proj[:, 2 * S:]
+    du = np.maximum(np.abs(u) - pack[:, 12], 0)
+    dv = np.maximum(np.abs(v) - pack[:, 13], 0)
     return du * du + dv * dv + h * h
 
 
@@ -190,6 +195,18 @@ def _orthonormal(n: np.ndarray, a1: np.ndarray, a2: np.ndarray) -> tuple[np.ndar
     return n, a1, b if b @ a2 >= 0 else -b
 
 
+def realign(m: Surfels, frame: AtlantaFrame) -> None:
+    """Snap every surfel's normal (and axes) of ``m`` to ``frame``'s Atlanta directions, about
+    its centre, in place."""
+    for i in range(len(m)):
+        d = int(m.direction[i])
+        if d >= len(frame.horizontal):
+            continue
+        t = frame.direction(d)
+        t = t if t @ m.normal[i] >= 0 else -t
+        m.normal[i], m.axis1[i], m.axis2[i] = _orthonormal(t, m.axis1[i], m.axis2[i])
+
+
 class GlobalSurfelMap:
     """One planar map from the surfels of every keyframe (see module doc)."""
 
@@ -227,14 +244,14 @@ class GlobalSurfelMap:
 
     def realign(self, frame: AtlantaFrame) -> None:
         """Snap every surfel's normal (and axes) to the current Atlanta directions, about its centre."""
-        m = self._map
-        for i in range(len(m)):
-            d = int(m.direction[i])
-            if d >= len(frame.horizontal):
-                continue
-            t = frame.direction(d)
-            t = t if t @ m.normal[i] >= 0 else -t
-            m.normal[i], m.axis1[i], m.axis2[i] = _orthonormal(t, m.axis1[i], m.axis2[i])
+        realign(self._map, frame)
+
+    def aligned(self, frame: AtlantaFrame | None) -> Surfels:
+        """A copy of the map realigned to ``frame`` (the map itself is left as it is)."""
+        s = self.surfels()
+        if frame is not None:
+            realign(s, frame)
+        return s
 
     def state_dict(self) -> dict:
         return {"surfels": {f: getattr(self._map, f).tolist() for f in FIELDS},
