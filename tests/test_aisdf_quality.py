@@ -32,7 +32,7 @@ MARGIN = 0.85                     # AiSDF + explicit map must be 15% better than
 
 def _run(seq: SyntheticSequence, frames: list[dict], atlanta: bool):
     pipe = MappingPipeline.from_settings("cpu", training={"seed": SEED}, atlanta=atlanta,
-                                         surfel_mask=True, surfel_loss=True)
+                                         surfel_mask=True, surfel_loss=True, surfel_bounds=False)  # the paper's
     for k, f in enumerate(frames):
         pipe.add_keyframe(Frame(f["frame_id"], f["stamp"], f["depth"], f["K"], f["T_WC"]))
         for _ in range(STEPS_FIRST if k == 0 else STEPS_PER):

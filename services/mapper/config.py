@@ -22,6 +22,8 @@ class MapperConfig(ServiceConfig):
     atlanta: bool = Field(True, description="estimate the Atlanta frame and surfels, publish map/surfels")
     surfel_mask: bool = Field(True, description="Table II switch: sample iSDF rays off surfels, points on surfels")
     surfel_loss: bool = Field(True, description="Table II switch: the surfel loss on surfel points")
+    surfel_bounds: bool = Field(True, description="beyond the paper: the global surfel map also bounds the "
+                                "training samples' distances (training.surfel_bounds; README, 'Training')")
     submaps: bool = Field(True, description="one network per submap (protocol 1.3: map/submaps/<id> and map/index, "
                           "only what changed each period); false = one network for the whole map (map/weights)")
     submap: SubmapConfig = Field(default_factory=SubmapConfig, description="submap cells and step sharing")

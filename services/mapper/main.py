@@ -58,9 +58,10 @@ class MapperNode:
         if pipeline is None and cfg.submaps:
             pipeline = SubmapPipeline.from_settings(cfg.preset, cfg.training, atlanta=cfg.atlanta,
                                                     surfel_mask=cfg.surfel_mask, surfel_loss=cfg.surfel_loss,
-                                                    submaps=cfg.submap)
+                                                    surfel_bounds=cfg.surfel_bounds, submaps=cfg.submap)
         self.pipeline = pipeline or MappingPipeline.from_settings(
-            cfg.preset, cfg.training, atlanta=cfg.atlanta, surfel_mask=cfg.surfel_mask, surfel_loss=cfg.surfel_loss)
+            cfg.preset, cfg.training, atlanta=cfg.atlanta, surfel_mask=cfg.surfel_mask, surfel_loss=cfg.surfel_loss,
+            surfel_bounds=cfg.surfel_bounds)
         self.pending: collections.deque = collections.deque()
         self.lock = threading.Lock()
         self.counts = {"received": 0, "rejected": 0, "dropped": 0, "accepted": 0, "duplicates": 0}

@@ -68,6 +68,10 @@ class MappingPipeline:
             self.structure = Structure(seed=trainer.cfg.seed)
             if atlanta_state:
                 self.structure.load_state_dict(atlanta_state)
+            if trainer.cfg.surfel_bounds:
+                from .structure.prior import SurfelPrior
+
+                trainer.bound_prior = SurfelPrior(self.structure)
         self._timings: dict[str, list[float]] = defaultdict(list)
         self._pending_timings: dict[str, float] = {}
         self._bounds: np.ndarray | None = None
@@ -76,9 +80,12 @@ class MappingPipeline:
 
     @classmethod
     def from_settings(cls, preset: str = "auto", training: dict[str, Any] | None = None, atlanta: bool = True,
-                      surfel_mask: bool = True, surfel_loss: bool = True) -> "MappingPipeline":
-        """Preset + overrides; the Table II switches only matter with ``atlanta`` on."""
+                      surfel_mask: bool = True, surfel_loss: bool = True,
+                      surfel_bounds: bool = True) -> "MappingPipeline":
+        """Preset + overrides; the Table II switches (and ``surfel_bounds``, beyond the paper)
+        only matter with ``atlanta`` on."""
         overrides = dict(training or {})
+        overrides.setdefault("surfel_bounds", bool(atlanta and surfel_bounds))
         overrides.setdefault("surfel_mask", bool(atlanta and surfel_mask))
         overrides.setdefault("surfel_loss", bool(atlanta and surfel_loss))
         return cls(Trainer(training_config(preset, **overrides)), atlanta=atlanta)

@@ -40,6 +40,7 @@ class ModelSpec:
     atlanta: bool = False
     surfel_mask: bool = False
     surfel_loss: bool = False
+    surfel_bounds: bool = False  # beyond the paper (the mapper's default); the paper's tables go without
 
 
 MODELS: dict[str, ModelSpec] = {
@@ -167,7 +168,8 @@ class NeuralRunner(Runner):
         super().__init__(name, clock)
         self.spec = spec
         self.pipe = MappingPipeline.from_settings(preset, training=training, atlanta=spec.atlanta,
-                                                  surfel_mask=spec.surfel_mask, surfel_loss=spec.surfel_loss)
+                                                  surfel_mask=spec.surfel_mask, surfel_loss=spec.surfel_loss,
+                                                  surfel_bounds=spec.surfel_bounds)
         self.selector = KeyframeSelector(KeyframeConfig(**(keyframes or {})))
         self._ms: dict[str, list[float]] = defaultdict(list)  # the pipeline's own per-module timings
         self._wall: dict[str, list[float]] = defaultdict(list)  # measured here: whole step / keyframe add

@@ -72,3 +72,31 @@ def batch_bounds(
             b[free] = float("nan")
             g[free] = float("nan")
     return b, g
+
+
+def tighten_bounds(b: torch.Tensor, g: torch.Tensor, batch, prior) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Caps the bound of every FREE sample by ``prior``'s distance to known surface
+    (``TrainingConfig.surfel_bounds``): any surface point bounds |SDF|, so
+    ``|b| <= min(batch distance, prior distance)``; where the prior is nearer, the gradient
+    target is its direction (signed like the bound). ``prior(points (K, 3) float64)`` ->
+    (distance (K,), unit direction from the nearest surface point (K, 3)); inf = unknown.
+    Also returns the mask (M,) of the samples whose bound the prior set."""
+    used = torch.zeros(len(b), dtype=torch.bool, device=b.device)
+    free = np.flatnonzero(batch.kind == FREE)
+    if not len(free):
+        return b, g, used
+    d, u = prior(batch.points_W[free].astype(np.float64))
+    d_t = torch.as_tensor(d, dtype=b.dtype, device=b.device)
+    idx = torch.as_tensor(free, device=b.device)
+    cur = b[idx]
+    closer = torch.isfinite(d_t) & (d_t < cur.abs())
+    if not bool(closer.any()):
+        return b, g, used
+    sign = torch.where(cur < 0, -1.0, 1.0).to(b.dtype)
+    u_t = torch.as_tensor(u, dtype=g.dtype, device=g.device)
+    b, g = b.clone(), g.clone()
+    sel = idx[closer]
+    b[sel] = (sign * d_t)[closer]
+    g[sel] = (sign[:, None] * u_t)[closer]
+    used[sel] = True
+    return b, g, used

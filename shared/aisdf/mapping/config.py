@@ -83,6 +83,17 @@ class TrainingConfig(Model):
         "so a surfel point weighs as much as any other sample; 'separate' = mean over non-surfel points + mean "
         "over surfel points, which made each surfel point weigh ~4-5x a ray sample and, with the 0.4 gradient "
         "term, made AiSDF worse than iSDF on the synthetic Atlanta building (see losses.py)")
+    surfel_bounds: bool = Field(
+        False, description="beyond the paper: a free ray sample's bound is also capped by its distance to the "
+        "global surfel map (any surfel point is a surface point, so that distance bounds |SDF| too), when the "
+        "pipeline provides that map (Trainer.bound_prior); the gradient target then points away from the "
+        "nearest surfel point. iSDF bounds a sample only by the ~200 surface points of its own batch, loose in "
+        "large rooms and corridors. Off = exactly iSDF's bounds"
+    )
+    surfel_trunc_distance: float = Field(
+        1.0, gt=0, description="with surfel_bounds: a sample whose bound the surfel map set gets the "
+        "truncation band's two-sided term |f - b| up to this bound (iSDF's trunc_distance elsewhere)"
+    )
     surfel_sdf_weight: float = Field(1.0, description="surfel loss: weight of |f|")
     surfel_grad_weight: float = Field(0.4, description="surfel loss: weight of 1 - cos(∇f, v)")
     surfel_eik_weight: float = Field(0.2, description="surfel loss: weight of |‖∇f‖ - 1|")

@@ -64,10 +64,11 @@ def grad_term(grad: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
     return torch.where(ok, 1.0 - cos, torch.zeros_like(cos))
 
 
-def isdf_point_loss(f, grad, b, g, cfg: TrainingConfig) -> dict[str, torch.Tensor]:
-    """Weighted per-point terms (M,) "sdf", "eikonal", "grad" and their sum "total"."""
+def isdf_point_loss(f, grad, b, g, cfg: TrainingConfig, trunc=None) -> dict[str, torch.Tensor]:
+    """Weighted per-point terms (M,) "sdf", "eikonal", "grad" and their sum "total".
+    ``trunc`` (M,) replaces ``cfg.trunc_distance`` per point when given."""
     out = {
-        "sdf": sdf_term(f, b, cfg.trunc_distance, cfg.free_space_beta, cfg.trunc_weight),
+        "sdf": sdf_term(f, b, cfg.trunc_distance if trunc is None else trunc, cfg.free_space_beta, cfg.trunc_weight),
         "eikonal": cfg.eik_weight * eikonal_term(grad, b, cfg.eik_apply_dist),
         "grad": cfg.grad_weight * grad_term(grad, g),
     }
@@ -92,7 +93,7 @@ def _mean(x: torch.Tensor) -> torch.Tensor:
 
 def training_loss(
     f: torch.Tensor, grad: torch.Tensor, b: torch.Tensor, g: torch.Tensor, kind: torch.Tensor, slot: torch.Tensor,
-    n_slots: int, cfg: TrainingConfig,
+    n_slots: int, cfg: TrainingConfig, trunc: torch.Tensor | None = None,
 ) -> tuple[torch.Tensor, dict[str, float], np.ndarray]:
     """Total loss (scalar), term means (floats; sdf + eikonal + grad + surfel = loss) and the mean
     per-point loss of each window slot (n_slots,) (NaN for a slot without samples)."""
@@ -103,7 +104,7 @@ def training_loss(
     def reduce(x: torch.Tensor) -> torch.Tensor:  # see the module docstring: "joint" or "separate"
         return _mean(x) if cfg.surfel_loss_mean == "separate" else x.sum() / n_all
 
-    iso = isdf_point_loss(f[ii], grad[ii], b[ii], g[ii], cfg)
+    iso = isdf_point_loss(f[ii], grad[ii], b[ii], g[ii], cfg, None if trunc is None else trunc[ii])
     loss = reduce(iso["total"])
     terms = {k: float(reduce(iso[k]).detach()) for k in ("sdf", "eikonal", "grad")}
     per_point = torch.empty_like(f)

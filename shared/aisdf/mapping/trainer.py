@@ -10,12 +10,13 @@ from __future__ import annotations
 
 import json
 import time
+from collections.abc import Callable
 
 import numpy as np
 import torch
 
 from .. import network
-from .bounds import batch_bounds
+from .bounds import batch_bounds, tighten_bounds
 from .config import TrainingConfig
 from .frames import Frame, KeyframeStore
 from .losses import training_loss
@@ -47,6 +48,9 @@ class Trainer:
         self.rng = np.random.default_rng(cfg.seed)
         self.store = KeyframeStore(cfg.window_size, cfg.max_keyframes, cfg.max_depth)
         self._steps = 0
+        # With cfg.surfel_bounds: points (M, 3) float64 -> (distance (M,), unit direction from the
+        # nearest surface point (M, 3)) to known surface (the global surfel map); set by the pipeline.
+        self.bound_prior: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]] | None = None
 
     # ------------------------------------------------------------------ state
     @property
@@ -91,12 +95,17 @@ class Trainer:
         self._sync()
         t1 = time.perf_counter()
         b, g = batch_bounds(pts, z, D, kind, target, cfg.bound_method, cfg.bound_chunk)
+        trunc = None
+        if cfg.surfel_bounds and self.bound_prior is not None:
+            b, g, by_prior = tighten_bounds(b, g, batch, self.bound_prior)
+            if cfg.surfel_trunc_distance > cfg.trunc_distance:
+                trunc = torch.where(by_prior, cfg.surfel_trunc_distance, cfg.trunc_distance).to(b.dtype)
         self._sync()
         t2 = time.perf_counter()
         info: dict = {"step": self._steps + 1, "window": [self.store.keyframes[i].frame.frame_id for i in idx]}
         if len(batch):
             f, grad = network.sdf_and_grad(self.net, pts, create_graph=True)
-            loss, terms, per_frame = training_loss(f, grad, b, g, kind, slot, len(idx), cfg)
+            loss, terms, per_frame = training_loss(f, grad, b, g, kind, slot, len(idx), cfg, trunc)
             self._sync()
             t3 = time.perf_counter()
             self.optimizer.zero_grad(set_to_none=True)

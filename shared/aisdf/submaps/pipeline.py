@@ -44,6 +44,7 @@ from .grid import SubmapGrid, cell_id, parse_cell_id
 
 CHECKPOINT_FORMAT = "aisdf-submaps-checkpoint"
 CHECKPOINT_VERSION = 1
+PRIOR_REACH_M = 1.0  # surfels this far beyond a submap's box still bound its samples
 Cell = tuple[int, int, int]
 
 
@@ -114,9 +115,10 @@ class SubmapPipeline:
 
     @classmethod
     def from_settings(cls, preset: str = "auto", training: dict[str, Any] | None = None, atlanta: bool = True,
-                      surfel_mask: bool = True, surfel_loss: bool = True,
+                      surfel_mask: bool = True, surfel_loss: bool = True, surfel_bounds: bool = True,
                       submaps: SubmapConfig | dict | None = None) -> "SubmapPipeline":
         overrides = dict(training or {})
+        overrides.setdefault("surfel_bounds", bool(atlanta and surfel_bounds))
         overrides.setdefault("surfel_mask", bool(atlanta and surfel_mask))
         overrides.setdefault("surfel_loss", bool(atlanta and surfel_loss))
         sub = submaps if isinstance(submaps, SubmapConfig) else SubmapConfig.model_validate(submaps or {})
@@ -228,11 +230,23 @@ class SubmapPipeline:
         seed = int(self.cfg.seed * 1_000_003 + (hash(c) % 1_000_003))
         cfg = self.cfg.model_copy(update={"network": net_cfg, "seed": seed})
         tr = Trainer(cfg)
+        self._attach_prior(c, tr)
         if donor is not None:
             network.load_numpy_state(tr.net, donor.trainer.state_numpy())
         sm = Submap(c, tr)
         self.submaps[c] = sm
         return sm
+
+    def _attach_prior(self, c: Cell, tr: Trainer) -> None:
+        """With ``surfel_bounds``: the global surfel map near the submap's box bounds its samples."""
+        if self.structure is None or not tr.cfg.surfel_bounds:
+            return
+        from ..structure.prior import SurfelPrior
+
+        box = self.grid.corners_W(c, self.grid.overlap_m + tr.cfg.trunc_distance)
+        centre = box.mean(0)
+        reach = float(np.linalg.norm(box - centre, axis=1).max()) + PRIOR_REACH_M
+        tr.bound_prior = SurfelPrior(self.structure, centre, reach)
 
     def _region(self, c: Cell):
         grid, o = self.grid, self.grid.overlap_m
@@ -448,6 +462,7 @@ class SubmapPipeline:
         for sd in d["submaps"]:
             c = tuple(int(x) for x in sd["cell"])
             tr = Trainer(TrainingConfig.model_validate(sd["config"]))
+            p._attach_prior(c, tr)
             network.load_numpy_state(tr.net, sd["state"])
             tr.optimizer.load_state_dict(_optimizer_from_numpy(sd["optimizer"]))
             tr._steps = int(sd["steps"])
