@@ -28,7 +28,8 @@ def test_quick_scaling_table(result):
     saved = json.loads((out / "scaling.json").read_text())
     assert saved["criteria"] == res["criteria"]
     md = (out / "scaling.md").read_text()
-    assert "| step time mean / p95 (ms) |" in md and "room7" in md
+    assert "| step time mean / p95 (ms) |" in md and "room7" in md and "implicit answer" in md
+    assert cfg.source == "fused"  # the criteria judge query/sdf's default answer
     n, P = cfg.keyframes, cfg.period_s
     for m in methods:
         for scene in ("office", "floor"):
@@ -44,8 +45,11 @@ def test_quick_scaling_table(result):
             mem = r["memory_end"]
             assert {"keyframes", "model", "observed"} <= set(mem) and all(v > 0 for v in mem.values())
             assert r["memory_bytes"] == sum(mem.values()) and r["memory_per_keyframe"] == r["memory_bytes"] // n
-            for k in ("error_walk_end_cm", "error_end_cm"):
-                assert math.isfinite(r[k]) and 0 < r[k] < 200
+            for k in ("walk_end", "end"):
+                assert math.isfinite(r[f"error_{k}_cm"]) and 0 < r[f"error_{k}_cm"] < 200
+                by = r[f"error_{k}_by_source_cm"]  # the default answer (judged) and the network alone, both kept
+                assert set(by) == {"fused", "implicit"} and by[cfg.source] == r[f"error_{k}_cm"]
+                assert all(math.isfinite(v) and 0 < v < 200 for v in by.values())
             assert r["steps_end"] >= r["steps_walk_end"] and r["t_end"] >= r["t_walk_end"] >= n * P
             assert 0 <= r["keyframe_late_s"]["mean"] <= r["keyframe_late_s"]["max"]
         floor = res["runs"][m]["floor"]
