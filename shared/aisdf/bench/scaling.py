@@ -470,6 +470,8 @@ def add_arguments(p) -> None:
     p.add_argument("--preset", choices=["cpu", "paper", "auto"], help="training preset (default cpu)")
     p.add_argument("--n-points", type=int, help="whole-map evaluation points (default 200000)")
     p.add_argument("--seed", type=int)
+    p.add_argument("--source", choices=["fused", "implicit"], help="the answer judged (default fused, query/sdf's "
+                   "default; the table shows both)")
     p.add_argument("--threads", type=int, help="torch threads")
     p.add_argument("--out", help="results folder (default runs/bench-scaling)")
 
@@ -478,7 +480,7 @@ def config_from_args(args) -> ScalingConfig:
     g = lambda k: getattr(args, k, None)  # noqa: E731
     return resolve("quick" if g("quick") else "full", **{k: g(k) for k in (
         "scenes", "methods", "keyframes", "period_s", "tail_s", "after_visit_s", "preset", "n_points", "seed",
-        "threads", "out")})
+        "source", "threads", "out")})
 
 
 def main(args) -> None:
