@@ -207,6 +207,24 @@ def test_observed_true_on_seen_surfaces_and_false_outside_every_frustum(seq):
     assert grid.contains(half).mean() > 0.99
 
 
+def test_observed_space_holds_every_voxel_seen_once_sorted_and_counts_the_new_ones(seq):
+    """Adding keyframes one by one gives exactly the sorted union of what each one saw (the
+    incremental insertion against a plain union of all of them), and ``add`` returns how many
+    voxels were new."""
+    obs = ObservedSpace(voxel=0.1)
+    seen = []
+    for i in range(0, 120, 10):
+        f = seq.frame(i)
+        one = ObservedSpace(voxel=0.1)
+        one.add(f["depth"], f["K"], f["T_WC"])
+        seen.append(one.keys)
+        before = obs.keys.copy()
+        n_new = obs.add(f["depth"], f["K"], f["T_WC"])
+        assert n_new == len(np.setdiff1d(one.keys, before))
+        assert obs.add(f["depth"], f["K"], f["T_WC"]) == 0  # the same image again: nothing new
+    np.testing.assert_array_equal(obs.keys, np.unique(np.concatenate(seen)))
+
+
 def test_observed_space_rejects_malformed_grids():
     g = box_grid()
     m = g.to_msg()

@@ -3,6 +3,7 @@ joiners get every submap, a restarted mapper resumes every submap from its check
 two robots (two front ends with their own sensor names) build one map in one namespace.
 Real processes over real Zenoh on loopback (explicit endpoints, multicast scouting off)."""
 
+import json
 import os
 import threading
 import time
@@ -122,9 +123,13 @@ def test_two_robots_walking_halves_map_as_well_as_one_robot_walking_all():
 
     # AISDF_TWO_ROBOTS_BUILDING=floor (and a larger AISDF_TWO_ROBOTS_STEPS) runs it on the floor
     building = os.environ.get("AISDF_TWO_ROBOTS_BUILDING", "office")
-    n, steps_after = 600, int(os.environ.get("AISDF_TWO_ROBOTS_STEPS", "500"))
-    fps = 30.0 if building == "office" else 3.0  # the floor's walk is 200 s: 600 frames at 3 fps
-    building_args = ["--set", f"building={building}", "--set", f"fps={fps}"]
+    steps_after = int(os.environ.get("AISDF_TWO_ROBOTS_STEPS", "500"))
+    # the floor's walk is 200 s: 300 frames at 1.5 fps, about one keyframe a second of the walk. The
+    # front ends stream as fast as they can and hold every keyframe until the mapper has it (a floor
+    # keyframe takes the mapper ~0.7 s on this machine: with the default hold_max, 128, the oldest
+    # would be dropped)
+    n, fps, settle_s = (600, 30.0, 240) if building == "office" else (300, 1.5, 900)
+    building_args = ["--set", f"building={building}", "--set", f"fps={fps}", "--set", "hold_max=1000"]
     mapper = ["--preset", "cpu", "--submaps", "--set", "training.network.width=64", "--set", "log_level=INFO"]
     one = Stack(services=("query", "mapper", "frontend"), namespace=NS + "/one",
                 args={"mapper": mapper, "frontend": frontend_args(n, "robot0") + building_args})
@@ -141,17 +146,20 @@ def test_two_robots_walking_halves_map_as_well_as_one_robot_walking_all():
         errors, counts = {}, {}
         with transport.open_session(one.client_zenoh) as s1, transport.open_session(two.client_zenoh) as s2:
             runs = {"one robot": (one, s1, 1), "two robots": (two, s2, 2)}
-            done = {k: wait_for(lambda s=s, ns=st.namespace, m=m: _settled(s, ns, m), 240, what=f"{k}: keyframes in")
+            done = {k: wait_for(lambda s=s, ns=st.namespace, m=m: _settled(s, ns, m), settle_s, what=f"{k}: keyframes in")
                     for k, (st, s, m) in runs.items()}
             for k, (st, s, _) in runs.items():
                 mi, fronts = done[k]
                 counts[k] = (mi["keyframes"], [f["keyframes"] for f in fronts])
-                assert all(f["acked"] == f["keyframes"] and f["rejected"] == 0 for f in fronts)
-                assert mi["keyframes"] == sum(f["keyframes"] for f in fronts)
+                # every keyframe is accounted for: in the map, or rejected by the mapper as unusable
+                # (e.g. too few valid depth pixels facing a wall up close); none lost
+                said = f"{k}: mapper {json.dumps(mi, default=str)}; front ends {json.dumps(fronts, default=str)}"
+                assert all(f["acked"] + f["rejected"] == f["keyframes"] for f in fronts), said
+                assert mi["keyframes"] == sum(f["acked"] for f in fronts), said
             target = {k: done[k][0]["steps"] + steps_after for k in runs}
             for k, (st, s, _) in runs.items():
                 wait_for(lambda s=s, ns=st.namespace, t=target[k]: (lambda i: i and i["steps"] >= t)(
-                    transport.get_latest(s, keys.key(ns, "info/mapper"), 2.0)), 300, what=f"{k}: training")
+                    transport.get_latest(s, keys.key(ns, "info/mapper"), 2.0)), 600, what=f"{k}: training")
                 mi = transport.get_latest(s, keys.key(st.namespace, "info/mapper"), 2.0)
                 time.sleep(3.0)  # the query service has the map of these steps (published every second)
                 with sc.open_session(st.endpoints) as cs:

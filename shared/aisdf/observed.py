@@ -81,11 +81,19 @@ class ObservedSpace:
         s = np.minimum(s, np.repeat(length, n))
         pts = T_WC[:3, 3] + dirs_W[ray] * s[:, None]
         new = np.unique(pack_keys(np.floor(pts / self.voxel).astype(np.int64)))
-        before = len(self.keys)
-        self.keys = np.union1d(self.keys, new)
-        if len(self.keys) != before:
+        # Only the voxels not yet held are inserted, in order: binary searches into the held keys
+        # and one copy, not a sort of everything held (which grew with the building).
+        if len(self.keys):
+            i = np.searchsorted(self.keys, new)
+            held = self.keys[np.minimum(i, len(self.keys) - 1)] == new
+            new, i = new[~held], i[~held]
+            if len(new):
+                self.keys = np.insert(self.keys, i, new)
+        else:
+            self.keys = new
+        if len(new):
             self._msg = None
-        return len(self.keys) - before
+        return len(new)
 
     def contains(self, points: np.ndarray) -> np.ndarray:
         """(N,) bool: is each world point in an observed voxel."""
