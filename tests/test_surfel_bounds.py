@@ -27,7 +27,9 @@ def _add(pipe, frames):
 
 
 def _bounds(trainer, n_batches: int = 6):
-    """(exact |SDF|, iSDF's |bound|, capped |bound|) of the free samples of a few batches."""
+    """The free samples of a few batches: points (K, 3), iSDF's bound (K,), the capped bound
+    (K,) and where the surfel map set it (K,). Checks on the way that only free samples are
+    touched and that a gradient target the surfel map set is a unit vector."""
     rows = []
     for _ in range(n_batches):
         idx = trainer.store.window(trainer.rng)
@@ -38,11 +40,10 @@ def _bounds(trainer, n_batches: int = 6):
         free = batch.kind == FREE
         assert not bool(used[torch.from_numpy(~free)].any())  # only free samples are touched
         u = used.numpy()[free]
-        # where the surfel map set the bound, the gradient target is a unit vector signed like the bound
         gn = g2.numpy()[free][u]
         assert np.allclose(np.linalg.norm(gn, axis=1), 1.0, atol=1e-5)
-        rows.append(np.stack([b.numpy()[free], b2.numpy()[free]], 1))
-    return np.concatenate(rows)
+        rows.append((batch.points_W[free].astype(np.float64), b.numpy()[free], b2.numpy()[free], u))
+    return tuple(np.concatenate(c) for c in zip(*rows))
 
 
 def test_capped_bounds_stay_upper_bounds_and_come_much_closer():
@@ -51,18 +52,8 @@ def test_capped_bounds_stay_upper_bounds_and_come_much_closer():
     assert pipe.trainer.cfg.surfel_bounds and pipe.trainer.bound_prior is not None
     _add(pipe, frames)
     assert len(pipe.surfels()) > 0
-    tr = pipe.trainer
-    rows = []
-    for _ in range(6):
-        idx = tr.store.window(tr.rng)
-        batch = sample_batch([tr.store.keyframes[i] for i in idx], tr.cfg, tr.rng)
-        t = {k: torch.from_numpy(getattr(batch, k)) for k in ("points_W", "z", "ray_depth", "kind", "target")}
-        b, g = batch_bounds(t["points_W"], t["z"], t["ray_depth"], t["kind"], t["target"])
-        b2, _, used = tighten_bounds(b, g, batch, tr.bound_prior)
-        free = batch.kind == FREE
-        gt = np.abs(seq.gt_sdf(batch.points_W[free].astype(np.float64)))
-        rows.append(np.stack([gt, np.abs(b.numpy()[free]), np.abs(b2.numpy()[free]), used.numpy()[free]], 1))
-    gt, b, b2, used = np.concatenate(rows).T
+    pts, b, b2, used = _bounds(pipe.trainer)
+    gt, b, b2 = np.abs(seq.gt_sdf(pts)), np.abs(b), np.abs(b2)
     assert used.mean() > 0.2  # the surfel map is nearer than the batch's surface points for many samples
     assert np.all(b2 <= b + 1e-6)  # never looser than iSDF's
     # still upper bounds: surfels lie within millimetres of the true faces (noise-free depth)

@@ -30,7 +30,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..structure.fusion import DEFAULT_FUSE_RADIUS, fuse
+from ..structure.fusion import DEFAULT_FUSE_RADIUS, fused_sdf
 from ..mapping.frames import Frame
 
 
@@ -229,11 +229,8 @@ class NeuralRunner(Runner):
             f, g = self.pipe.sdf(p), None
         f = f.astype(np.float64)
         g = None if g is None else g.astype(np.float64)
-        if view == "fused" and (s := self.surfels()) is not None:
-            from ..structure.surfel_map import explicit_sdf
-
-            d_e, g_e, _ = explicit_sdf(p, s)
-            f, g, _ = fuse(f, g, d_e, g_e if grad else None, DEFAULT_FUSE_RADIUS)
+        if view == "fused":
+            f, g = fused_sdf(p, f, g, self.surfels(), DEFAULT_FUSE_RADIUS)
         return f, g
 
     def estimated_up(self) -> np.ndarray | None:

@@ -164,16 +164,11 @@ class _Scorer:
         self.points, self.gt = points, gt
 
     def scores(self, pipe) -> dict[str, float]:
-        from ..structure.fusion import fuse
-        from ..structure.surfel_map import explicit_sdf
+        from ..structure.fusion import fused_sdf
 
         f = np.asarray(pipe.sdf(self.points), dtype=np.float64)
-        out = {"implicit": f}
         s = pipe.surfels() if hasattr(pipe, "surfels") else None
-        if s is not None and len(s):
-            out["fused"] = fuse(f, None, explicit_sdf(self.points, s)[0], None)[0]
-        else:
-            out["fused"] = f
+        out = {"implicit": f, "fused": fused_sdf(self.points, f, None, s)[0]}
         return {k: round(100.0 * float(np.mean(np.abs(v - self.gt))), 3) for k, v in out.items()}
 
     def score(self, pipe, source: str = "fused") -> float:

@@ -31,3 +31,16 @@ def fuse(sdf_i: np.ndarray, grad_i: np.ndarray | None, sdf_e: np.ndarray, grad_e
             g_u = np.where((sdf_e < 0)[:, None], -grad_e, grad_e)
             grad[use] = g_u[use]
     return sdf, grad, use
+
+
+def fused_sdf(points: np.ndarray, sdf_i: np.ndarray, grad_i: np.ndarray | None, surfels,
+              radius: float = DEFAULT_FUSE_RADIUS) -> tuple[np.ndarray, np.ndarray | None]:
+    """``fuse`` of the network's answer at ``points`` with the explicit distance to ``surfels``
+    (none or empty: the network's answer as it is). Returns (sdf, gradient or None)."""
+    if surfels is None or not len(surfels):
+        return sdf_i, grad_i
+    from .surfel_map import explicit_sdf
+
+    d_e, g_e, _ = explicit_sdf(points, surfels)
+    f, g, _ = fuse(sdf_i, grad_i, d_e, None if grad_i is None else g_e, radius)
+    return f, g
