@@ -7,6 +7,7 @@ import pytest
 import torch
 
 from aisdf.mapping import PRESETS, Frame, KeyframeStore, Trainer, TrainingConfig, training_config
+from aisdf.mapping.presets import submap_training_config
 from aisdf.mapping.bounds import batch_bounds
 from aisdf.mapping.frames import Keyframe
 from aisdf.mapping.losses import eikonal_term, grad_term, sdf_term, training_loss
@@ -290,6 +291,11 @@ def test_presets():
     assert training_config("auto").preset == ("paper" if torch.cuda.is_available() else "cpu")
     with pytest.raises(ValueError, match="unknown training preset"):
         training_config("fast")
+    # submaps on the cpu preset: narrower networks whose rate settles; the caller's overrides win
+    sub = submap_training_config("cpu", seed=3)
+    assert (sub.network.width, sub.lr_settle, sub.n_rays, sub.seed) == (64, 2e-4, cpu.n_rays, 3)
+    assert cpu.lr_settle is None and submap_training_config("cpu", network={"width": 32}).network.width == 32
+    assert submap_training_config("paper") == paper
 
 
 def _tiny_cfg(**kw):
@@ -327,6 +333,33 @@ def test_checkpoint_resume_is_exact():
     assert a["loss"] == b["loss"] and a["window"] == b["window"]
     for k, v in trainer.state_numpy().items():
         np.testing.assert_array_equal(v, resumed.state_numpy()[k])
+
+
+def test_learning_rate_settles_while_no_keyframe_arrives_and_restarts_with_one():
+    frames = room_frames(3)
+    paper = Trainer(_tiny_cfg())
+    paper.add_keyframe(frames[0])
+    paper.step()
+    assert paper.learning_rate() == paper.optimizer.param_groups[0]["lr"] == 1.3e-3  # iSDF's constant rate
+    tr = Trainer(_tiny_cfg(lr_settle=2e-4, lr_halflife_steps=2))
+    tr.add_keyframe(frames[0])
+    rates = []
+    for _ in range(5):
+        tr.step()
+        rates.append(tr.optimizer.param_groups[0]["lr"])
+    # steps 0..4 since the keyframe: the excess over 2e-4 (1.1e-3) halves every 2 steps
+    assert rates == pytest.approx([2e-4 + 1.1e-3 * 0.5 ** (k / 2) for k in range(5)], rel=1e-12)
+    tr.add_keyframe(frames[1])  # a new view: back to the full rate, then settling again
+    tr.step()
+    assert tr.optimizer.param_groups[0]["lr"] == pytest.approx(1.3e-3)
+    resumed = Trainer.from_checkpoint(tr.checkpoint())
+    assert resumed.learning_rate() == tr.learning_rate() == pytest.approx(2e-4 + 1.1e-3 * 0.5 ** 0.5)
+    start = Trainer(_tiny_cfg(lr_settle=2e-4, lr_halflife_steps=2, lr_decay_from="start"))
+    start.add_keyframe(frames[0])
+    for _ in range(4):
+        start.step()
+    start.add_keyframe(frames[1])
+    assert start.learning_rate() == pytest.approx(2e-4 + 1.1e-3 * 0.25)  # a keyframe does not restart it
 
 
 N_CONVERGENCE_STEPS = 120

@@ -203,6 +203,49 @@ def test_only_changed_submaps_are_published_and_messages_decode():
     assert all(v["version"] == 1 for k, v in idx3.submaps.items() if k != info["submap"])
 
 
+def test_background_refinement_is_published_in_batches_and_in_view_submaps_at_once():
+    _, frames = office_frames()
+    p = small_pipeline(refine_every=0, idle_steps=1, background_publish_steps=3, background_publish_periods=4)
+    for f in frames[:6]:
+        p.add_keyframe(f)
+    for _ in range(4):
+        p.step()
+    p.map_messages(1)  # everything is published once
+    in_view = set().union(*p._recent)
+    out_of_view = [sm for c, sm in p.submaps.items() if c not in in_view]
+    assert out_of_view, "the test needs a submap the newest keyframes do not see"
+
+    def sent(msgs):
+        return {k.rsplit("/", 1)[1] for k, _ in msgs if k.startswith(keys.MAP_SUBMAPS + "/")}
+
+    # idle: every step refines the least trained submap; one step on a submap out of view waits
+    target = out_of_view[0]
+    target.trainer.step()
+    assert target.id not in sent(p.map_messages(2))
+    # ... what republishing everything would cost (mark=False) records nothing
+    assert target.id in sent(p.map_messages(2, changed_only=False, mark=False))
+    assert target.id not in sent(p.map_messages(3))
+    # the index lists what was put, not the unpublished steps
+    idx = protocol.SubmapIndex.from_msg(protocol.unpack(dict(p.map_messages(4))[keys.MAP_INDEX]))
+    assert idx.submaps[target.id]["step"] == target.published_step < target.trainer.steps
+    assert target.id not in sent(p.map_messages(5))
+    # ... until it has waited background_publish_periods (4) publications since the first that held it back
+    assert target.id in sent(p.map_messages(6))
+    # or until it has background_publish_steps (3) unpublished steps
+    for n in range(3):
+        target.trainer.step()
+        assert (target.id in sent(p.map_messages(7 + n))) == (n == 2)
+    # a submap in view goes out after a single step
+    sm = p.submaps[next(iter(p._recent[0]))]
+    sm.trainer.step()
+    assert sm.id in sent(p.map_messages(10))
+    # a resumed pipeline keeps what waits
+    target.trainer.step()
+    p.map_messages(11)
+    q = restore_pipeline(p.checkpoint())
+    assert q.submaps[target.cell].dirty_since == target.dirty_since == 11 and q._publications == 11
+
+
 def test_checkpoint_restores_every_submap_and_continues_identically():
     _, frames = office_frames()
     p = small_pipeline()

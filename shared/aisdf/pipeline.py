@@ -169,9 +169,11 @@ class MappingPipeline:
     def sdf(self, points: np.ndarray) -> np.ndarray:
         return self.trainer.sdf(points)
 
-    def map_messages(self, version: int, changed_only: bool = True, epoch: int = 0) -> list[tuple[str, bytes]]:
+    def map_messages(self, version: int, changed_only: bool = True, epoch: int = 0,
+                     mark: bool = True) -> list[tuple[str, bytes]]:
         """What the mapper publishes for map ``version``: (key under the namespace, payload).
-        One network is one message: it is all sent every time, changed or not."""
+        One network is one message: it is all sent every time, changed or not (``mark`` is
+        for the submap pipeline's interface: nothing here records a publication)."""
         snap = self.weight_snapshot(version)
         snap.epoch = epoch
         out = [(keys.MAP_WEIGHTS, protocol.pack(snap.to_msg()))]

@@ -231,8 +231,8 @@ def walk(pipe, seq, frames: list[dict], stream_per_kf: float, cfg: ScalingConfig
             continue
         if t >= next_period:
             with clock.pause():
-                changed = pipe.map_messages(version)  # first: it marks what it sends as published
-                full = pipe.map_messages(version, changed_only=False)
+                changed = pipe.map_messages(version)  # marks what it sends as published
+                full = pipe.map_messages(version, changed_only=False, mark=False)
             periods.append({"t": round(next_period, 3), "walking": next_period <= t_walk + 1e-9,
                             "bytes": _msg_bytes(changed), "messages": len(changed), "bytes_all": _msg_bytes(full),
                             "messages_all": len(full)})

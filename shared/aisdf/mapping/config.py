@@ -98,9 +98,16 @@ class TrainingConfig(Model):
     surfel_grad_weight: float = Field(0.4, description="surfel loss: weight of 1 - cos(∇f, v)")
     surfel_eik_weight: float = Field(0.2, description="surfel loss: weight of |‖∇f‖ - 1|")
 
-    # Optimiser (AdamW, no schedule).
+    # Optimiser (AdamW; iSDF's constant rate unless lr_settle is set).
     lr: float = Field(1.3e-3, gt=0, description="AdamW learning rate")
     weight_decay: float = Field(1.2e-2, ge=0, description="AdamW weight decay")
+    lr_settle: float | None = Field(
+        None, gt=0, description="beyond the paper: the rate decays from lr towards this one while no new keyframe "
+        "arrives (None: iSDF's constant lr)")
+    lr_halflife_steps: float = Field(100.0, gt=0, description="steps since the newest keyframe over which the "
+                                     "rate's excess over lr_settle halves")
+    lr_decay_from: Literal["keyframe", "start"] = Field(
+        "keyframe", description="the decay counts steps since the newest keyframe, or since the first step")
 
     # iSDF's offline schedule (for "equal iterations" comparisons).
     steps_first_frame: int = Field(200, ge=0, description="steps after the first keyframe")

@@ -48,6 +48,8 @@ class Trainer:
         self.rng = np.random.default_rng(cfg.seed)
         self.store = KeyframeStore(cfg.window_size, cfg.max_keyframes, cfg.max_depth)
         self._steps = 0
+        self._store_size = (0, 0)  # (keyframes, dropped) at the last step: a change is a new keyframe
+        self._newest_step = 0  # step count when the newest keyframe was first trained on
         # With cfg.surfel_bounds: points (M, 3) float64 -> (distance (M,), unit direction from the
         # nearest surface point (M, 3)) to known surface (the global surfel map); set by the pipeline.
         self.bound_prior: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]] | None = None
@@ -74,6 +76,20 @@ class Trainer:
         return self.store.add(frame)
 
     # ------------------------------------------------------------------ training
+    def learning_rate(self) -> float:
+        """The rate of the next step: ``lr``, or with ``lr_settle`` a rate that halves its
+        excess over ``lr_settle`` every ``lr_halflife_steps`` steps since the newest keyframe
+        (or since the first step): learn fast while new views arrive, then settle (a constant
+        rate keeps the field jittering by about a centimetre from step to step)."""
+        cfg = self.cfg
+        if cfg.lr_settle is None:
+            return cfg.lr
+        size = (len(self.store), self.store.dropped)
+        if size != self._store_size:
+            self._store_size, self._newest_step = size, self._steps
+        since = self._steps - (self._newest_step if cfg.lr_decay_from == "keyframe" else 0)
+        return cfg.lr_settle + (cfg.lr - cfg.lr_settle) * 0.5 ** (since / cfg.lr_halflife_steps)
+
     def _sync(self) -> None:
         if self.device.type == "cuda":
             torch.cuda.synchronize(self.device)
@@ -110,6 +126,9 @@ class Trainer:
             t3 = time.perf_counter()
             self.optimizer.zero_grad(set_to_none=True)
             loss.backward()
+            lr = self.learning_rate()
+            for group in self.optimizer.param_groups:
+                group["lr"] = lr
             self.optimizer.step()
             self._sync()
             self.store.update_losses(idx, per_frame)
@@ -171,8 +190,15 @@ class Trainer:
             "keyframes": [k.frame.to_dict() for k in self.store.keyframes],
             "losses": [k.loss for k in self.store.keyframes],
             "steps": self._steps, "dropped": self.store.dropped,
-            "rng": json.dumps(self.rng.bit_generator.state),
+            "rng": json.dumps(self.rng.bit_generator.state), "lr_state": self.lr_state(),
         }
+
+    def lr_state(self) -> list[int]:
+        return [*self._store_size, self._newest_step]
+
+    def load_lr_state(self, v: list[int] | None) -> None:
+        if v is not None:
+            self._store_size, self._newest_step = (int(v[0]), int(v[1])), int(v[2])
 
     @classmethod
     def from_checkpoint(cls, d: dict, **config_overrides) -> "Trainer":
@@ -190,6 +216,7 @@ class Trainer:
         t.store.dropped = int(d["dropped"])
         t._steps = int(d["steps"])
         t.rng.bit_generator.state = json.loads(d["rng"])
+        t.load_lr_state(d.get("lr_state"))
         return t
 
 

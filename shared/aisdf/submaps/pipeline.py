@@ -35,7 +35,7 @@ from pydantic import Field
 from .. import geometry, keys, network, protocol
 from ..config import Model
 from ..mapping.frames import Frame, Keyframe
-from ..mapping.presets import training_config
+from ..mapping.presets import submap_training_config
 from ..mapping.trainer import Trainer, _optimizer_from_numpy, _optimizer_to_numpy
 from ..observed import ObservedSpace
 from ..pipeline import MIN_VALID_PIXELS, frame_from_keyframe, grow_bounds, surfel_map_message
@@ -67,6 +67,11 @@ class SubmapConfig(Model):
                              "neighbour's (else a fresh network)")
     grid_wait_keyframes: int = Field(3, ge=1, description="keyframes to wait for an Atlanta frame before the grid "
                                   "falls back to the world's axes")
+    background_publish_steps: int = Field(8, ge=1, description="a submap out of view (none of the newest "
+                                          "keyframes sees it) changed by background refinement is published once "
+                                          "it has this many unpublished steps ...")
+    background_publish_periods: int = Field(10, ge=1, description="... or this many publications after its first "
+                                            "unpublished step; submaps in view and new ones go out at once")
 
 
 @dataclass
@@ -78,6 +83,7 @@ class Submap:
     observed_key: tuple = ()  # observed-space state its cached message was built for
     observed_msg: dict | None = None
     seen_by: list = field(default_factory=list)  # keyframe keys, arrival order
+    dirty_since: int | None = None  # publication count when its first unpublished step was seen
 
     @property
     def id(self) -> str:
@@ -112,6 +118,7 @@ class SubmapPipeline:
         self._timings: dict[str, list[float]] = defaultdict(list)
         self._pending_timings: dict[str, float] = {}
         self._bounds: np.ndarray | None = None
+        self._publications = 0  # map_messages(changed_only=True) calls
 
     @classmethod
     def from_settings(cls, preset: str = "auto", training: dict[str, Any] | None = None, atlanta: bool = True,
@@ -122,7 +129,7 @@ class SubmapPipeline:
         overrides.setdefault("surfel_mask", bool(atlanta and surfel_mask))
         overrides.setdefault("surfel_loss", bool(atlanta and surfel_loss))
         sub = submaps if isinstance(submaps, SubmapConfig) else SubmapConfig.model_validate(submaps or {})
-        return cls(training_config(preset, **overrides), atlanta=atlanta, submaps=sub)
+        return cls(submap_training_config(preset, **overrides), atlanta=atlanta, submaps=sub)
 
     def describe(self) -> str:
         c, s = self.cfg, self.sub_cfg
@@ -378,20 +385,40 @@ class SubmapPipeline:
 
     def index(self, version: int, epoch: int = 0) -> protocol.SubmapIndex:
         return protocol.SubmapIndex(version, time.time(), self.grid.to_msg(),
-                                    {sm.id: {"version": sm.version, "step": sm.trainer.steps}
+                                    {sm.id: {"version": sm.version, "step": max(sm.published_step, 0)}
                                      for sm in self.submaps.values()}, epoch)
 
-    def map_messages(self, version: int, changed_only: bool = True, epoch: int = 0) -> list[tuple[str, bytes]]:
+    def _due(self, sm: Submap, mark: bool = True) -> bool:
+        """Is this changed submap published now? New ones and those the newest keyframes see
+        (where the robot is), at once; one changed only by background refinement out of view,
+        once it has ``background_publish_steps`` unpublished steps or has waited
+        ``background_publish_periods`` publications (bytes follow what changed, not the
+        refinement's single steps)."""
+        s = self.sub_cfg
+        if sm.published_step < 0 or any(sm.cell in seen for seen in self._recent):
+            return True
+        since = self._publications if sm.dirty_since is None else sm.dirty_since
+        if mark:
+            sm.dirty_since = since
+        return (sm.trainer.steps - sm.published_step >= s.background_publish_steps
+                or self._publications - since >= s.background_publish_periods)
+
+    def map_messages(self, version: int, changed_only: bool = True, epoch: int = 0,
+                     mark: bool = True) -> list[tuple[str, bytes]]:
         """What the mapper publishes for map ``version``: every submap trained since its last
-        publication (all with ``changed_only`` False) on ``map/submaps/<id>``, the index on
-        ``map/index`` and the global surfel map."""
+        publication that is due (``_due``; all of them with ``changed_only`` False) on
+        ``map/submaps/<id>``, the index on ``map/index`` and the global surfel map. With
+        ``mark`` False nothing is recorded as published (what a publication would cost)."""
         out = []
         if self.grid is None:
             return out
+        if changed_only and mark:
+            self._publications += 1
         for sm in self.submaps.values():
-            if changed_only and sm.trainer.steps == sm.published_step:
+            if changed_only and (sm.trainer.steps == sm.published_step or not self._due(sm, mark)):
                 continue
-            sm.published_step, sm.version = sm.trainer.steps, version
+            if mark:
+                sm.published_step, sm.version, sm.dirty_since = sm.trainer.steps, version, None
             snap = self.submap_snapshot(sm, version, epoch)
             out.append((f"{keys.MAP_SUBMAPS}/{sm.id}", protocol.pack(snap.to_msg())))
         out.append((keys.MAP_INDEX, protocol.pack(self.index(version, epoch).to_msg())))
@@ -425,7 +452,7 @@ class SubmapPipeline:
                 "cell": list(sm.cell), "config": tr.cfg.model_dump(mode="json"), "state": tr.state_numpy(),
                 "optimizer": _optimizer_to_numpy(tr.optimizer.state_dict()), "steps": tr.steps,
                 "dropped": tr.store.dropped, "rng": tr.rng.bit_generator.state, "published_step": sm.published_step,
-                "version": sm.version,
+                "version": sm.version, "dirty_since": sm.dirty_since, "lr_state": tr.lr_state(),
                 "keyframes": [[k.frame.sensor, int(k.frame.frame_id), k.loss] for k in tr.store.keyframes],
             })
         return {
@@ -437,7 +464,7 @@ class SubmapPipeline:
             "waiting": [list(k.frame.key) for k in self._waiting],
             "recent": [[[list(c), n] for c, n in seen.items()] for seen in self._recent],
             "credit": [[list(c), v] for c, v in self._credit.items()], "since_keyframe": self._since_keyframe,
-            "submaps": subs, "steps": self._steps, "rng": self.rng.bit_generator.state,
+            "submaps": subs, "steps": self._steps, "publications": self._publications, "rng": self.rng.bit_generator.state,
             "bounds": None if self._bounds is None else self._bounds.tolist(),
             "observed": self.observed.state_dict(),
         }
@@ -467,7 +494,9 @@ class SubmapPipeline:
             tr.optimizer.load_state_dict(_optimizer_from_numpy(sd["optimizer"]))
             tr._steps = int(sd["steps"])
             tr.rng.bit_generator.state = sd["rng"]
+            tr.load_lr_state(sd.get("lr_state"))
             sm = Submap(c, tr, int(sd["published_step"]), int(sd["version"]))
+            sm.dirty_since = sd.get("dirty_since")
             p.submaps[c] = sm
             for sensor, fid, loss in sd["keyframes"]:
                 kf = p.frames[(sensor, int(fid))]
@@ -476,6 +505,7 @@ class SubmapPipeline:
                 sm.seen_by.append(kf.frame.key)
             tr.store.dropped = int(sd["dropped"])
         p._steps = int(d["steps"])
+        p._publications = int(d.get("publications", 0))
         p._since_keyframe = int(d.get("since_keyframe", 0))
         for c, v in d.get("credit", []):
             p._credit[tuple(int(x) for x in c)] = float(v)
