@@ -360,6 +360,15 @@ def test_learning_rate_settles_while_no_keyframe_arrives_and_restarts_with_one()
         start.step()
     start.add_keyframe(frames[1])
     assert start.learning_rate() == pytest.approx(2e-4 + 1.1e-3 * 0.25)  # a keyframe does not restart it
+    # a network short of steps for its keyframes (here 3 per keyframe) keeps the full rate
+    short = Trainer(_tiny_cfg(lr_settle=2e-4, lr_halflife_steps=2, lr_settle_after=3))
+    short.add_keyframe(frames[0])
+    short.add_keyframe(frames[1])
+    rates = []
+    for _ in range(8):
+        short.step()
+        rates.append(short.optimizer.param_groups[0]["lr"])
+    assert rates == pytest.approx([1.3e-3] * 6 + [2e-4 + 1.1e-3 * 0.5 ** (k / 2) for k in (6, 7)], rel=1e-12)
 
 
 N_CONVERGENCE_STEPS = 120

@@ -106,6 +106,8 @@ class TrainingConfig(Model):
         "arrives (None: iSDF's constant lr)")
     lr_halflife_steps: float = Field(100.0, gt=0, description="steps since the newest keyframe over which the "
                                      "rate's excess over lr_settle halves")
+    lr_settle_after: float = Field(0.0, ge=0, description="the rate settles only once the network has had this "
+                                   "many steps per keyframe it holds (fewer: the full lr)")
     lr_decay_from: Literal["keyframe", "start"] = Field(
         "keyframe", description="the decay counts steps since the newest keyframe, or since the first step")
 

@@ -79,14 +79,15 @@ class Trainer:
     def learning_rate(self) -> float:
         """The rate of the next step: ``lr``, or with ``lr_settle`` a rate that halves its
         excess over ``lr_settle`` every ``lr_halflife_steps`` steps since the newest keyframe
-        (or since the first step): learn fast while new views arrive, then settle (a constant
-        rate keeps the field jittering by about a centimetre from step to step)."""
+        (or since the first step), once the network has had ``lr_settle_after`` steps per
+        keyframe it holds: learn fast while new views arrive or while it is short of steps,
+        then settle (a constant rate keeps the field jittering by about a centimetre)."""
         cfg = self.cfg
-        if cfg.lr_settle is None:
-            return cfg.lr
         size = (len(self.store), self.store.dropped)
         if size != self._store_size:
             self._store_size, self._newest_step = size, self._steps
+        if cfg.lr_settle is None or self._steps < cfg.lr_settle_after * len(self.store):
+            return cfg.lr  # the paper's constant rate; or a network still short of steps for its keyframes
         since = self._steps - (self._newest_step if cfg.lr_decay_from == "keyframe" else 0)
         return cfg.lr_settle + (cfg.lr - cfg.lr_settle) * 0.5 ** (since / cfg.lr_halflife_steps)
 
