@@ -64,3 +64,16 @@ def test_quick_scaling_table(result):
     assert res["runs"]["single"]["floor"]["bytes_ratio"] == 1.0  # one network: all of it, every period
     info = res["scene_info"]["floor"]
     assert len(info["visits"]) == 7 and info["stream_s_per_keyframe"] > 10  # spread over the whole walk
+
+
+def test_training_overrides_from_the_command_line_merge_over_the_profile():
+    import argparse
+
+    p = argparse.ArgumentParser()
+    scaling.add_arguments(p)
+    args = p.parse_args(["--quick", "--training", '{"network": {"width": 128}, "lr_settle": null}'])
+    cfg = scaling.config_from_args(args)
+    assert cfg.training["network"] == {"width": 128} and cfg.training["lr_settle"] is None
+    assert cfg.training["n_rays"] == scaling.PROFILES["quick"]["training"]["n_rays"]  # the profile's, kept
+    with pytest.raises(SystemExit):
+        p.parse_args(["--training", "[1, 2]"])

@@ -469,13 +469,27 @@ def add_arguments(p) -> None:
                    "default; the table shows both)")
     p.add_argument("--threads", type=int, help="torch threads")
     p.add_argument("--out", help="results folder (default runs/bench-scaling)")
+    p.add_argument("--training", type=_json_map, help="training overrides over the preset (and, for submaps, its "
+                   "submap settings), JSON, e.g. '{\"network\": {\"width\": 128}, \"lr_settle\": null}'")
+
+
+def _json_map(text: str) -> dict:
+    import argparse
+
+    try:
+        v = json.loads(text)
+    except json.JSONDecodeError as e:
+        raise argparse.ArgumentTypeError(f"not JSON: {e}") from None
+    if not isinstance(v, dict):
+        raise argparse.ArgumentTypeError("expected a JSON object")
+    return v
 
 
 def config_from_args(args) -> ScalingConfig:
     g = lambda k: getattr(args, k, None)  # noqa: E731
     return resolve("quick" if g("quick") else "full", **{k: g(k) for k in (
         "scenes", "methods", "keyframes", "period_s", "tail_s", "after_visit_s", "preset", "n_points", "seed",
-        "source", "threads", "out")})
+        "source", "threads", "out", "training")})
 
 
 def main(args) -> None:
