@@ -469,8 +469,8 @@ def add_arguments(p) -> None:
                    "default; the table shows both)")
     p.add_argument("--threads", type=int, help="torch threads")
     p.add_argument("--out", help="results folder (default runs/bench-scaling)")
-    p.add_argument("--training", type=_json_map, help="training overrides over the preset (and, for submaps, its "
-                   "submap settings), JSON, e.g. '{\"network\": {\"width\": 128}, \"lr_settle\": null}'")
+    p.add_argument("--training", type=_json_map, help="training overrides over the preset (for submaps, over its "
+                   "SUBMAP_PRESETS entry too), JSON, e.g. '{\"network\": {\"width\": 128}, \"lr_settle\": null}'")
 
 
 def _json_map(text: str) -> dict:
