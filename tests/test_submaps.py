@@ -293,14 +293,17 @@ def test_bad_keyframe_changes_nothing():
     assert p.n_keyframes == n and set(p.submaps) == subs
 
 
-def _map_error(offset, steps: int = 300) -> float:
+def _map_error(offset, steps: int = 300, settle: int = 0, seed: int = 0) -> float:
+    """The office room walked with ``steps`` steps, then ``settle`` more without new keyframes."""
     seq, frames = office_frames(step=45, offset=offset)
-    p = SubmapPipeline.from_settings("cpu", training={"seed": 0})
+    p = SubmapPipeline.from_settings("cpu", training={"seed": seed})
     per = max(1, steps // len(frames))
     for f in frames:
         p.add_keyframe(f)
         for _ in range(per):
             p.step()
+    for _ in range(settle):
+        p.step()
     raw = [seq.frame(i) for i in range(0, len(seq), 45)]
     pts = eval_points(raw, n_points=4000, every=1, rng=np.random.default_rng(0), far_margin=0.1)
     gt = seq.gt_sdf(pts)
@@ -309,9 +312,14 @@ def _map_error(offset, steps: int = 300) -> float:
 
 @pytest.mark.slow
 def test_a_room_200m_from_the_origin_maps_as_well_as_at_the_origin():
-    """Submaps centre their encodings on themselves: 200 m away is no different."""
-    near = _map_error((0.0, 0.0, 0.0))
-    far = _map_error((200.0, -150.0, 10.0))
+    """Submaps centre their encodings on themselves: 200 m away is no different.
+
+    One training run is chaotic: the room shifted by 1 mm mapped 6.48 cm against 6.05 cm
+    unshifted (seed 0, 300 steps), and single seeds at 200 m ranged 0.94-1.20x the origin's.
+    So the test compares settled maps (200 steps after the walk), averaged over two seeds:
+    measured 1.029 and 1.038x for seeds 0 and 1."""
+    near = np.mean([_map_error((0.0, 0.0, 0.0), settle=200, seed=s) for s in (0, 1)])
+    far = np.mean([_map_error((200.0, -150.0, 10.0), settle=200, seed=s) for s in (0, 1)])
     print(f"office error at the origin {100 * near:.2f} cm, 250 m away {100 * far:.2f} cm")
     assert far <= 1.1 * near
 
