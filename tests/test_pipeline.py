@@ -9,7 +9,8 @@ from aisdf import protocol
 from aisdf.mapping.frames import Frame
 from aisdf.pipeline import MappingPipeline
 from aisdf.synthetic import SyntheticSequence
-from aisdf_query.engine import MapState, QueryEngine
+from aisdf_query.engine import QueryEngine
+from aisdf_query.mapstate import MapState
 
 torch.set_num_threads(1)
 

@@ -28,7 +28,9 @@ from aisdf.submaps.field import blend
 from aisdf.submaps.grid import SubmapGrid, cell_id
 from aisdf.structure.surfel_types import Surfels
 from aisdf.synthetic import SyntheticSequence
-from aisdf_query.engine import MapState, QueryEngine, tiled_marching_cubes
+from aisdf_query.engine import QueryEngine
+from aisdf_query.mapstate import MapState
+from aisdf_query.meshing import tiled_marching_cubes
 
 torch.set_num_threads(1)
 NS = "aisdf/e2esub"
@@ -317,7 +319,7 @@ def test_answers_equal_the_submap_mappers_own_blend():
 
 
 def test_surfel_moves_below_the_tolerance_keep_samples_and_never_add_up():
-    from aisdf_query.engine import surfel_changes
+    from aisdf_query.changes import surfel_changes
 
     def surfels(dx):
         return Surfels(center=[[dx, 0, 1.0], [2, 0, 1]], normal=[[1.0, 0, 0], [0, 1.0, 0]],

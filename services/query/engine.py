@@ -35,7 +35,7 @@ import threading
 import time
 from collections import deque
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 import torch
@@ -50,6 +50,10 @@ from aisdf.submaps.field import assign, blend
 from aisdf.submaps.grid import SubmapGrid, parse_cell_id
 from aisdf.structure.surfel_types import Surfels
 
+from .changes import in_boxes, surfel_changes
+from .mapstate import MapState, Submap, SubmapSet, union_observed
+from .meshing import tiled_marching_cubes
+
 log = logging.getLogger(__name__)
 BAKE_CHUNK = 2048  # network points per pass while baking: bounds the activations (~15 MB at width 128)
 
@@ -58,173 +62,6 @@ def pick_device(name: str) -> torch.device:
     if name == "auto":
         return torch.device("cuda" if torch.cuda.is_available() else "cpu")
     return torch.device(name)
-
-
-@dataclass(frozen=True)
-class Submap:
-    """One submap's newest snapshot, its network rebuilt."""
-
-    cell: tuple[int, int, int]
-    version: int  # the global map version it was published at
-    step: int
-    net: torch.nn.Module
-    observed: ObservedGrid | None  # observed space of its extended box
-    bounds: np.ndarray | None
-
-
-@dataclass(frozen=True)
-class SubmapSet:
-    """The submaps of one mapper incarnation (replaced whole, never changed in place)."""
-
-    grid: SubmapGrid
-    submaps: dict  # cell -> Submap
-
-    def changed_since(self, other: "SubmapSet") -> list[tuple[int, int, int]]:
-        """Cells whose submap differs (added, replaced or gone) between ``other`` and this set."""
-        cells = set(self.submaps) | set(other.submaps)
-        return sorted(c for c in cells if self.submaps.get(c) is not other.submaps.get(c))
-
-
-@dataclass(frozen=True)
-class MapState:
-    version: int  # WeightSnapshot.version (submaps: the newest of the index's and the snapshots'): map_version
-    step: int
-    net: torch.nn.Module | None  # the single network; None when the map is made of submaps
-    bounds: np.ndarray | None  # (2, 3) world AABB of what was observed, when the mapper sent it
-    surfels: Surfels | None
-    surfel_version: int
-    epoch: int = 0  # the mapper incarnation: maps order by (epoch, version)
-    observed: ObservedGrid | None = None  # observed space, when the mapper sent it (protocol 1.1)
-    received: float = field(default_factory=time.monotonic)  # when these weights arrived
-    submaps: SubmapSet | None = None  # protocol 1.3: the map as submaps (then net is None)
-
-    @property
-    def order(self) -> tuple[int, int]:
-        return (self.epoch, self.version)
-
-    def with_surfels(self, surfels: Surfels | None, surfel_version: int) -> "MapState":
-        return MapState(self.version, self.step, self.net, self.bounds, surfels, surfel_version, self.epoch,
-                        self.observed, self.received, self.submaps)
-
-    def same_field(self, other: "MapState") -> bool:
-        """Same implicit field and surfels (a bake of one is a bake of the other)."""
-        if self.surfels is not other.surfels:
-            return False
-        if self.submaps is None or other.submaps is None:
-            return self.submaps is other.submaps and self.net is other.net
-        return self.submaps.grid is other.submaps.grid and not self.submaps.changed_since(other.submaps)
-
-
-def union_observed(grids: list[ObservedGrid], align: float) -> ObservedGrid | None:
-    """One grid holding every voxel any of ``grids`` holds (their union), its origin on a
-    multiple of ``align`` (the bake's block, so that successive unions share the bake's
-    lattice). Grids on the same voxel lattice are pasted; others are resampled at the
-    union's voxel centres."""
-    grids = [g for g in grids if g is not None]
-    if not grids:
-        return None
-    voxel = min(g.voxel for g in grids)
-    lo = np.min([g.origin for g in grids], axis=0)
-    hi = np.max([g.bounds[1] for g in grids], axis=0)
-    step = align if align > 0 and abs(align / voxel - round(align / voxel)) < 1e-6 else voxel
-    origin = np.floor(lo / step + 1e-9) * step
-    shape = np.maximum(np.ceil((hi - origin) / voxel - 1e-6).astype(np.int64), 1)
-    occ = np.zeros(tuple(shape), bool)
-    for g in grids:
-        off = (g.origin - origin) / voxel
-        ioff = np.round(off).astype(np.int64)
-        if abs(g.voxel - voxel) < 1e-9 * voxel and np.abs(off - ioff).max() < 1e-6:
-            sl = tuple(slice(ioff[a], ioff[a] + g.occ.shape[a]) for a in range(3))
-            occ[sl] |= g.occ
-        else:  # another lattice: the union's voxels whose centres it holds
-            a = np.maximum(np.floor((g.origin - origin) / voxel).astype(np.int64), 0)
-            b = np.minimum(np.ceil((g.bounds[1] - origin) / voxel).astype(np.int64), shape)
-            idx = np.stack(np.meshgrid(*[np.arange(a[k], b[k]) for k in range(3)], indexing="ij"), -1).reshape(-1, 3)
-            hit = g.contains(origin + (idx + 0.5) * voxel)
-            occ[tuple(idx[hit].T)] = True
-    return ObservedGrid(origin, voxel, occ)
-
-
-def _half_axes(s: Surfels) -> tuple[np.ndarray, np.ndarray]:
-    return 0.5 * s.axis1 * s.extent[:, :1], 0.5 * s.axis2 * s.extent[:, 1:2]
-
-
-def _surfel_box(s: Surfels) -> np.ndarray:
-    """(N, 2, 3) world boxes of the rectangles."""
-    h1, h2 = _half_axes(s)
-    half = np.abs(h1) + np.abs(h2)
-    return np.stack([s.center - half, s.center + half], axis=1)
-
-
-def surfel_changes(ref: Surfels | None, new: Surfels | None, tol: float = 0.0) -> tuple[np.ndarray, Surfels | None]:
-    """Which surfels changed between ``ref`` (the surfels the previous bake's samples were
-    computed with) and ``new``: (boxes (K, 2, 3) of the changed ones, old and new
-    geometry, the new reference). A surfel of ``new`` is unchanged when one of ``ref``
-    (nearest centre, same direction, matched once) lies within ``tol`` of it: no point of
-    the rectangle moved more than ``tol`` (centre move plus the moves of its half axes), so
-    no distance to it changed more than that. An unchanged surfel keeps its reference
-    geometry (so small moves never add up unnoticed: a sample is at most 2 tol off); a
-    changed or new one takes its new geometry, a gone one leaves the reference."""
-    empty = np.zeros((0, 2, 3))
-    if new is None or not len(new):
-        return (_surfel_box(ref) if ref is not None and len(ref) else empty), new
-    if ref is None or not len(ref):
-        return _surfel_box(new), new
-    from scipy.spatial import cKDTree
-
-    k = min(4, len(ref))
-    _, nn = cKDTree(ref.center).query(new.center, k=k)
-    nn = nn.reshape(len(new), k)
-    r1, r2 = _half_axes(ref)
-    n1, n2 = _half_axes(new)
-    match = np.full(len(new), -1)
-    taken = np.zeros(len(ref), bool)
-    best = np.full(len(new), np.inf)
-    for c in range(k):
-        j = nn[:, c]
-        move = (np.linalg.norm(new.center - ref.center[j], axis=1)
-                + np.minimum(np.linalg.norm(n1 - r1[j], axis=1), np.linalg.norm(n1 + r1[j], axis=1))
-                + np.minimum(np.linalg.norm(n2 - r2[j], axis=1), np.linalg.norm(n2 + r2[j], axis=1)))
-        ok = (move <= tol) & (new.direction == ref.direction[j]) & (move < best)
-        # normals pointing the other way are another surface (a surfel is one-sided)
-        ok &= np.sum(new.normal * ref.normal[j], axis=1) > 0
-        best[ok], match[ok] = move[ok], j[ok]
-    for i in np.argsort(best):  # one reference surfel per new one
-        if match[i] >= 0:
-            if taken[match[i]]:
-                match[i] = -1
-            else:
-                taken[match[i]] = True
-    same = match >= 0
-    boxes = [_surfel_box(new[~same]), _surfel_box(ref[~taken])]
-    out = Surfels.concat([ref[match[same]], new[~same]])
-    return np.concatenate(boxes), out
-
-
-def in_boxes(points: np.ndarray, boxes: np.ndarray, grow: float, cell: float = 1.0) -> np.ndarray:
-    """(M,) bool: points within ``grow`` of any axis-aligned box (binned, so many boxes and
-    many points stay cheap)."""
-    p = np.asarray(points, np.float64).reshape(-1, 3)
-    out = np.zeros(len(p), bool)
-    if not len(boxes) or not len(p):
-        return out
-    lo, hi = boxes[:, 0] - grow, boxes[:, 1] + grow
-    cells = np.floor(p / cell).astype(np.int64)
-    uc, inv = np.unique(cells, axis=0, return_inverse=True)
-    order = np.argsort(inv.reshape(-1), kind="stable")
-    bounds = np.searchsorted(inv.reshape(-1)[order], np.arange(len(uc) + 1))
-    clo, chi = uc * cell, (uc + 1) * cell
-    for n in range(len(uc)):  # boxes meeting this cell, then its points
-        meet = np.all((lo <= chi[n]) & (hi >= clo[n]), axis=1)
-        if not meet.any():
-            continue
-        ii = order[bounds[n]:bounds[n + 1]]
-        q = p[ii]
-        hit = np.zeros(len(ii), bool)
-        for bl, bh in zip(lo[meet], hi[meet]):
-            hit |= np.all((q >= bl) & (q <= bh), axis=1)
-        out[ii] = hit
-    return out
 
 
 @dataclass(frozen=True)
@@ -691,62 +528,3 @@ class QueryEngine:
                 "ask for a coarser resolution")
         verts, faces = tiled_marching_cubes(lambda p: self._field(state, p, False)[0], lo, res, n, self.mesh_tile)
         return protocol.MeshReply(state.version, verts.astype(np.float32), faces.astype(np.int32))
-
-
-def tiled_marching_cubes(fn, lo: np.ndarray, res: float, n, tile: int = 64) -> tuple[np.ndarray, np.ndarray]:
-    """Marching cubes of the zero level of ``fn`` (points (M, 3) float32 -> (M,)) on the
-    lattice ``lo + res * (i, j, k)``, ``0 <= i < n[0]`` ..., in tiles of at most ``tile``
-    samples per edge: neighbouring tiles share one plane of samples, so every cube is
-    marched once and the vertices on a shared plane come out twice at the same place;
-    those are welded. Memory: one tile's samples (and the mesh), whatever the box.
-    Returns (vertices (V, 3) float64 world, faces (F, 3) int64)."""
-    from skimage.measure import marching_cubes
-
-    n = [int(x) for x in n]
-    starts = [range(0, max(n[a] - 1, 1), tile - 1) for a in range(3)]
-    verts, faces, count = [], [], 0
-    for s0 in starts[0]:
-        for s1 in starts[1]:
-            for s2 in starts[2]:
-                s = np.array([s0, s1, s2])
-                e = np.minimum(s + tile, n)
-                if np.any(e - s < 2):
-                    continue
-                axes = [lo[a] + res * np.arange(s[a], e[a]) for a in range(3)]
-                pts = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3).astype(np.float32)
-                vol = np.asarray(fn(pts), np.float32).reshape(tuple(e - s))
-                del pts
-                if not (vol.min() < 0 < vol.max()):
-                    continue
-                v, f, _, _ = marching_cubes(vol, level=0.0)
-                verts.append(v.astype(np.float64) + s)  # lattice units
-                faces.append(f.astype(np.int64) + count)
-                count += len(v)
-    if not verts:
-        return np.zeros((0, 3)), np.zeros((0, 3), np.int64)
-    V, F = np.concatenate(verts), np.concatenate(faces)
-    # Weld the vertices on shared planes (integer lattice coordinates of a tile border).
-    borders = [np.array([x for x in starts[a] if x > 0]) for a in range(3)]
-    seam = np.zeros(len(V), bool)
-    for a in range(3):
-        if len(borders[a]):
-            near = np.abs(V[:, a, None] - borders[a][None, :]).min(axis=1) < 1e-4
-            seam |= near
-    rep = np.arange(len(V))
-    si = np.flatnonzero(seam)
-    if len(si):
-        from scipy.sparse import coo_matrix
-        from scipy.sparse.csgraph import connected_components
-        from scipy.spatial import cKDTree
-
-        pairs = cKDTree(V[si]).query_pairs(1e-4, output_type="ndarray")
-        if len(pairs):
-            m = len(si)
-            g = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(m, m))
-            ncomp, lab = connected_components(g, directed=False)
-            first = np.full(ncomp, m)
-            np.minimum.at(first, lab, np.arange(m))  # the lowest index of each component
-            rep[si] = si[first[lab]]
-    keep = rep == np.arange(len(V))
-    new_index = np.cumsum(keep) - 1
-    return lo + res * V[keep], new_index[rep[F]]

@@ -1,0 +1,90 @@
+"""What changed between two maps, for a bake that recomputes only that: the surfels that
+moved (:func:`surfel_changes`) and the points near changed boxes (:func:`in_boxes`)."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from aisdf.structure.surfel_types import Surfels
+
+
+def _half_axes(s: Surfels) -> tuple[np.ndarray, np.ndarray]:
+    return 0.5 * s.axis1 * s.extent[:, :1], 0.5 * s.axis2 * s.extent[:, 1:2]
+
+
+def _surfel_box(s: Surfels) -> np.ndarray:
+    """(N, 2, 3) world boxes of the rectangles."""
+    h1, h2 = _half_axes(s)
+    half = np.abs(h1) + np.abs(h2)
+    return np.stack([s.center - half, s.center + half], axis=1)
+
+
+def surfel_changes(ref: Surfels | None, new: Surfels | None, tol: float = 0.0) -> tuple[np.ndarray, Surfels | None]:
+    """Which surfels changed between ``ref`` (the surfels the previous bake's samples were
+    computed with) and ``new``: (boxes (K, 2, 3) of the changed ones, old and new
+    geometry, the new reference). A surfel of ``new`` is unchanged when one of ``ref``
+    (nearest centre, same direction, matched once) lies within ``tol`` of it: no point of
+    the rectangle moved more than ``tol`` (centre move plus the moves of its half axes), so
+    no distance to it changed more than that. An unchanged surfel keeps its reference
+    geometry (so small moves never add up unnoticed: a sample is at most 2 tol off); a
+    changed or new one takes its new geometry, a gone one leaves the reference."""
+    empty = np.zeros((0, 2, 3))
+    if new is None or not len(new):
+        return (_surfel_box(ref) if ref is not None and len(ref) else empty), new
+    if ref is None or not len(ref):
+        return _surfel_box(new), new
+    from scipy.spatial import cKDTree
+
+    k = min(4, len(ref))
+    _, nn = cKDTree(ref.center).query(new.center, k=k)
+    nn = nn.reshape(len(new), k)
+    r1, r2 = _half_axes(ref)
+    n1, n2 = _half_axes(new)
+    match = np.full(len(new), -1)
+    taken = np.zeros(len(ref), bool)
+    best = np.full(len(new), np.inf)
+    for c in range(k):
+        j = nn[:, c]
+        move = (np.linalg.norm(new.center - ref.center[j], axis=1)
+                + np.minimum(np.linalg.norm(n1 - r1[j], axis=1), np.linalg.norm(n1 + r1[j], axis=1))
+                + np.minimum(np.linalg.norm(n2 - r2[j], axis=1), np.linalg.norm(n2 + r2[j], axis=1)))
+        ok = (move <= tol) & (new.direction == ref.direction[j]) & (move < best)
+        # normals pointing the other way are another surface (a surfel is one-sided)
+        ok &= np.sum(new.normal * ref.normal[j], axis=1) > 0
+        best[ok], match[ok] = move[ok], j[ok]
+    for i in np.argsort(best):  # one reference surfel per new one
+        if match[i] >= 0:
+            if taken[match[i]]:
+                match[i] = -1
+            else:
+                taken[match[i]] = True
+    same = match >= 0
+    boxes = [_surfel_box(new[~same]), _surfel_box(ref[~taken])]
+    out = Surfels.concat([ref[match[same]], new[~same]])
+    return np.concatenate(boxes), out
+
+
+def in_boxes(points: np.ndarray, boxes: np.ndarray, grow: float, cell: float = 1.0) -> np.ndarray:
+    """(M,) bool: points within ``grow`` of any axis-aligned box (binned, so many boxes and
+    many points stay cheap)."""
+    p = np.asarray(points, np.float64).reshape(-1, 3)
+    out = np.zeros(len(p), bool)
+    if not len(boxes) or not len(p):
+        return out
+    lo, hi = boxes[:, 0] - grow, boxes[:, 1] + grow
+    cells = np.floor(p / cell).astype(np.int64)
+    uc, inv = np.unique(cells, axis=0, return_inverse=True)
+    order = np.argsort(inv.reshape(-1), kind="stable")
+    bounds = np.searchsorted(inv.reshape(-1)[order], np.arange(len(uc) + 1))
+    clo, chi = uc * cell, (uc + 1) * cell
+    for n in range(len(uc)):  # boxes meeting this cell, then its points
+        meet = np.all((lo <= chi[n]) & (hi >= clo[n]), axis=1)
+        if not meet.any():
+            continue
+        ii = order[bounds[n]:bounds[n + 1]]
+        q = p[ii]
+        hit = np.zeros(len(ii), bool)
+        for bl, bh in zip(lo[meet], hi[meet]):
+            hit |= np.all((q >= bl) & (q <= bh), axis=1)
+        out[ii] = hit
+    return out

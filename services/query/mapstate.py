@@ -1,0 +1,100 @@
+"""The query engine's map: one consistent version of the mapper's field (a single network
+or a set of submaps), its observed space and surfels, replaced whole, never changed in
+place (``engine.QueryEngine`` swaps a new one in with one reference assignment)."""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+import torch
+
+from aisdf.observed import ObservedGrid
+from aisdf.structure.surfel_types import Surfels
+from aisdf.submaps.grid import SubmapGrid
+
+
+@dataclass(frozen=True)
+class Submap:
+    """One submap's newest snapshot, its network rebuilt."""
+
+    cell: tuple[int, int, int]
+    version: int  # the global map version it was published at
+    step: int
+    net: torch.nn.Module
+    observed: ObservedGrid | None  # observed space of its extended box
+    bounds: np.ndarray | None
+
+
+@dataclass(frozen=True)
+class SubmapSet:
+    """The submaps of one mapper incarnation (replaced whole, never changed in place)."""
+
+    grid: SubmapGrid
+    submaps: dict  # cell -> Submap
+
+    def changed_since(self, other: "SubmapSet") -> list[tuple[int, int, int]]:
+        """Cells whose submap differs (added, replaced or gone) between ``other`` and this set."""
+        cells = set(self.submaps) | set(other.submaps)
+        return sorted(c for c in cells if self.submaps.get(c) is not other.submaps.get(c))
+
+
+@dataclass(frozen=True)
+class MapState:
+    version: int  # WeightSnapshot.version (submaps: the newest of the index's and the snapshots'): map_version
+    step: int
+    net: torch.nn.Module | None  # the single network; None when the map is made of submaps
+    bounds: np.ndarray | None  # (2, 3) world AABB of what was observed, when the mapper sent it
+    surfels: Surfels | None
+    surfel_version: int
+    epoch: int = 0  # the mapper incarnation: maps order by (epoch, version)
+    observed: ObservedGrid | None = None  # observed space, when the mapper sent it (protocol 1.1)
+    received: float = field(default_factory=time.monotonic)  # when these weights arrived
+    submaps: SubmapSet | None = None  # protocol 1.3: the map as submaps (then net is None)
+
+    @property
+    def order(self) -> tuple[int, int]:
+        return (self.epoch, self.version)
+
+    def with_surfels(self, surfels: Surfels | None, surfel_version: int) -> "MapState":
+        return MapState(self.version, self.step, self.net, self.bounds, surfels, surfel_version, self.epoch,
+                        self.observed, self.received, self.submaps)
+
+    def same_field(self, other: "MapState") -> bool:
+        """Same implicit field and surfels (a bake of one is a bake of the other)."""
+        if self.surfels is not other.surfels:
+            return False
+        if self.submaps is None or other.submaps is None:
+            return self.submaps is other.submaps and self.net is other.net
+        return self.submaps.grid is other.submaps.grid and not self.submaps.changed_since(other.submaps)
+
+
+def union_observed(grids: list[ObservedGrid], align: float) -> ObservedGrid | None:
+    """One grid holding every voxel any of ``grids`` holds (their union), its origin on a
+    multiple of ``align`` (the bake's block, so that successive unions share the bake's
+    lattice). Grids on the same voxel lattice are pasted; others are resampled at the
+    union's voxel centres."""
+    grids = [g for g in grids if g is not None]
+    if not grids:
+        return None
+    voxel = min(g.voxel for g in grids)
+    lo = np.min([g.origin for g in grids], axis=0)
+    hi = np.max([g.bounds[1] for g in grids], axis=0)
+    step = align if align > 0 and abs(align / voxel - round(align / voxel)) < 1e-6 else voxel
+    origin = np.floor(lo / step + 1e-9) * step
+    shape = np.maximum(np.ceil((hi - origin) / voxel - 1e-6).astype(np.int64), 1)
+    occ = np.zeros(tuple(shape), bool)
+    for g in grids:
+        off = (g.origin - origin) / voxel
+        ioff = np.round(off).astype(np.int64)
+        if abs(g.voxel - voxel) < 1e-9 * voxel and np.abs(off - ioff).max() < 1e-6:
+            sl = tuple(slice(ioff[a], ioff[a] + g.occ.shape[a]) for a in range(3))
+            occ[sl] |= g.occ
+        else:  # another lattice: the union's voxels whose centres it holds
+            a = np.maximum(np.floor((g.origin - origin) / voxel).astype(np.int64), 0)
+            b = np.minimum(np.ceil((g.bounds[1] - origin) / voxel).astype(np.int64), shape)
+            idx = np.stack(np.meshgrid(*[np.arange(a[k], b[k]) for k in range(3)], indexing="ij"), -1).reshape(-1, 3)
+            hit = g.contains(origin + (idx + 0.5) * voxel)
+            occ[tuple(idx[hit].T)] = True
+    return ObservedGrid(origin, voxel, occ)
