@@ -302,21 +302,25 @@ def test_replay_republishes_a_rosbag2_recording(ros_router, tmp_path):
 
 
 @pytest.mark.e2e
-def test_live_source_waits_for_its_robot_and_ends_on_sigterm():
+def test_live_source_waits_for_its_robot_and_ends_on_sigterm(tmp_path):
     """No robot yet (nothing on the ROS side): the frontend runs, answers info/frontend with a
     live source (no total), and SIGTERM ends it cleanly and promptly."""
     from aisdf import keys, transport
     from aisdf.stack import Stack, wait_for
 
     ns = "aisdf/ros2term"
-    st = Stack(services=("frontend",), namespace=ns,
+    st = Stack(services=("frontend",), namespace=ns, log_dir=tmp_path,
                args={"frontend": ["--source", "ros2", "--ros-connect", endpoint(free_port()),
                                   "--set", "reliable=false"]})
     try:
         st.start()
         with transport.open_session(st.client_zenoh) as s:
-            fi = wait_for(lambda: (lambda i: i if i and "source" in i else None)(
-                transport.get_latest(s, keys.key(ns, "info/frontend"), 1.0)), 60, what="the live source to start")
+            try:
+                fi = wait_for(lambda: (lambda i: i if i and "source" in i else None)(
+                    transport.get_latest(s, keys.key(ns, "info/frontend"), 1.0)), 60, what="the live source to start")
+            except TimeoutError as e:  # timed out once under the full suite (2026-12-02): say what the frontend did
+                log = (tmp_path / "frontend.log").read_text()[-3000:]
+                raise AssertionError(f"{e}; frontend alive: {st.alive('frontend')}, ports {st.ports}; its log:\n{log}")
             assert fi["total"] is None and fi["frames"] == 0 and fi["source"]["images"] == 0
         t = time.monotonic()
         assert st.stop_one("frontend", timeout=20) == 0
