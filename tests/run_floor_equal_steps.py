@@ -13,7 +13,7 @@ import time
 
 import numpy as np
 
-from aisdf.bench import scaling
+from aisdf.bench import scaling, scaling_walk
 from aisdf.structure.fusion import DEFAULT_FUSE_RADIUS, fuse
 from aisdf.structure.surfel_map import explicit_sdf
 
@@ -27,8 +27,8 @@ ap.add_argument("--training", default="{}")
 ap.add_argument("--submaps", default="{}")
 a = ap.parse_args()
 cfg = scaling.resolve("full", keyframes=a.kf, n_points=50000)
-seq, frames, spk = scaling.scene_frames(a.scene, cfg)
-whole = scaling._whole_scorer(seq, frames, cfg)
+seq, frames, spk = scaling_walk.scene_frames(a.scene, cfg)
+whole = scaling_walk.whole_scorer(seq, frames, cfg)
 tr = json.loads(a.training)
 if a.method == "single":
     pipe = scaling._single("cpu", tr)
@@ -38,7 +38,7 @@ else:
 t0 = time.time(); debt = 0.0; tstep = 0.0
 for i, f in enumerate(frames):
     try:
-        pipe.add_keyframe(scaling._frame(f))
+        pipe.add_keyframe(scaling_walk._frame(f))
     except ValueError as e:
         print("rejected", i, e)
     debt += a.per_kf

@@ -1,0 +1,196 @@
+"""The walk of ``aisdf bench scaling`` (``scaling.py`` holds its config, report and entry
+point): a scene's keyframes added one per period of wall time while the mapper steps in
+between, the bytes its publications would take, and the errors, with the clock paused while
+scoring and encoding."""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections.abc import Callable
+from contextlib import contextmanager
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+if TYPE_CHECKING:
+    from .scaling import ScalingConfig
+
+log = logging.getLogger("aisdf.bench.scaling")
+
+
+class _Clock:
+    """Wall seconds since start, less the paused intervals."""
+
+    def __init__(self) -> None:
+        self.t0, self.paused = time.perf_counter(), 0.0
+
+    def __call__(self) -> float:
+        return time.perf_counter() - self.t0 - self.paused
+
+    @contextmanager
+    def pause(self):
+        t = time.perf_counter()
+        try:
+            yield
+        finally:
+            self.paused += time.perf_counter() - t
+
+
+def scene_frames(name: str, cfg: ScalingConfig) -> tuple[Any, list[dict], float]:
+    """The sequence, its keyframes rendered up front, and its stream seconds per keyframe.
+    A building with a floor plan is walked whole: at 1 keyframe per stream second when
+    ``keyframes`` cover the walk, else spread evenly over it."""
+    from ..synthetic import PLANS, SyntheticSequence
+    from ..synthetic.trajectory import walk_duration
+
+    n = cfg.keyframes
+    fps = 1.0 if name not in PLANS else min(1.0, n / walk_duration(PLANS[name]()))
+    seq = SyntheticSequence(building=name, n_frames=n, H=cfg.H, W=cfg.W, fps=fps, noise=cfg.noise, seed=cfg.seed)
+    return seq, [seq.frame(i) for i in range(n)], 1.0 / fps
+
+
+def _frame(f: dict):
+    from ..mapping.frames import Frame
+
+    return Frame(int(f["frame_id"]), float(f["stamp"]), f["depth"], f["K"], f["T_WC"])
+
+
+class _Scorer:
+    """Fixed evaluation points with their exact SDF. ``scores(pipe)`` -> mean |error| in cm of
+    the network alone (``implicit``) and of the default answer of ``query/sdf`` (``fused``: the
+    network and the surfel map, ``aisdf.structure.fusion``); ``score(pipe, source)`` one of them."""
+
+    def __init__(self, points: np.ndarray, gt: np.ndarray):
+        self.points, self.gt = points, gt
+
+    def scores(self, pipe) -> dict[str, float]:
+        from ..structure.fusion import fused_sdf
+
+        f = np.asarray(pipe.sdf(self.points), dtype=np.float64)
+        s = pipe.surfels() if hasattr(pipe, "surfels") else None
+        out = {"implicit": f, "fused": fused_sdf(self.points, f, None, s)[0]}
+        return {k: round(100.0 * float(np.mean(np.abs(v - self.gt))), 3) for k, v in out.items()}
+
+    def score(self, pipe, source: str = "fused") -> float:
+        return self.scores(pipe)[source]
+
+
+def whole_scorer(seq, frames: list[dict], cfg: ScalingConfig) -> _Scorer:
+    from ..metrics import eval_points
+
+    p = eval_points(frames, n_points=cfg.n_points, every=1, rng=np.random.default_rng([cfg.seed, 7]), far_margin=0.1)
+    return _Scorer(p, seq.gt_sdf(p))
+
+
+def _room_scorer(seq, frames: list[dict], room: str, cfg: ScalingConfig) -> _Scorer | None:
+    from ..metrics import eval_points
+
+    if not frames:
+        return None
+    idx = seq.plan.names.index(room)
+    p = eval_points(frames, n_points=4 * cfg.n_room_points, every=1, rng=np.random.default_rng([cfg.seed, 8, idx]),
+                    far_margin=0.1)
+    p = p[seq.region_of(p) == idx][: cfg.n_room_points]
+    return _Scorer(p, seq.gt_sdf(p)) if len(p) >= 20 else None
+
+
+def _msg_bytes(msgs) -> int:
+    return int(sum(len(k) + len(v) for k, v in msgs))
+
+
+def walk(pipe, seq, frames: list[dict], stream_per_kf: float, cfg: ScalingConfig, whole: _Scorer,
+         say: Callable[[str], None] = lambda s: None) -> dict:
+    """One method on one scene; see the module docstring. Returns the run's record."""
+    n, P = len(frames), cfg.period_s
+    # Events in wall seconds: rooms scored after their visit, the walk's end, the end.
+    events: list[tuple[float, str, str]] = []
+    for room, (t_in, t_out) in getattr(seq, "visits", {}).items():
+        left = t_out / stream_per_kf * P  # wall time at which the camera leaves the room
+        events.append((min(left + cfg.after_visit_s, n * P), "room", room))
+    t_walk = n * P
+    events += [(t_walk, "walk_end", ""), (t_walk + cfg.tail_s, "end", "")]
+    events.sort(key=lambda e: (e[0], e[1] != "room"))
+    step_ms: list[float] = []
+    periods: list[dict] = []
+    rooms: dict[str, dict] = {}
+    scorers: dict[str, _Scorer] = {}
+    rec: dict[str, Any] = {"rejected": 0}
+    late: list[float] = []  # how long after its time each keyframe was added (a busy mapper is late)
+    clock = _Clock()
+    next_kf, next_period, version = 0, P, 1
+    while True:
+        t = clock()
+        if next_kf < n and t >= next_kf * P:
+            late.append(t - next_kf * P)
+            try:
+                pipe.add_keyframe(_frame(frames[next_kf]))
+            except ValueError as e:
+                rec["rejected"] += 1
+                log.info("keyframe %d rejected: %s", next_kf, e)
+            next_kf += 1
+            continue
+        if t >= next_period:
+            with clock.pause():
+                changed = pipe.map_messages(version)  # marks what it sends as published
+                full = pipe.map_messages(version, changed_only=False, mark=False)
+            periods.append({"t": round(next_period, 3), "walking": next_period <= t_walk + 1e-9,
+                            "bytes": _msg_bytes(changed), "messages": len(changed), "bytes_all": _msg_bytes(full),
+                            "messages_all": len(full)})
+            next_period += P
+            version += 1
+            continue
+        if events and t >= events[0][0]:
+            when, kind, room = events.pop(0)
+            with clock.pause():
+                if kind == "room":
+                    t_in, t_out = seq.visits[room]
+                    vis = [f for f in frames[:next_kf] if t_in - 1e-9 <= f["stamp"] <= t_out + 1e-9]
+                    sc = _room_scorer(seq, vis, room, cfg)
+                    if sc is not None:
+                        scorers[room] = sc
+                        rooms[room] = {"t_after_visit": round(when, 2), "t_scored": round(t, 2), "points": len(sc.points),
+                                       "keyframes": len(vis), "after_visit_cm": sc.score(pipe, cfg.source)}
+                        say(f"  {room}: {rooms[room]['after_visit_cm']:.2f} cm just after its visit "
+                            f"({len(vis)} keyframes, t = {when:.0f} s)")
+                else:
+                    key = "walk_end" if kind == "walk_end" else "end"
+                    both = whole.scores(pipe)
+                    rec[f"error_{key}_cm"] = both[cfg.source]
+                    rec[f"error_{key}_by_source_cm"] = both
+                    rec[f"memory_{key}"] = {k: int(v) for k, v in pipe.memory().items()}
+                    rec[f"steps_{key}"] = int(pipe.steps)
+                    rec[f"t_{key}"] = round(t, 2)  # when it was scored (later than planned on a busy machine)
+                    for r, sc in scorers.items():
+                        rooms[r][f"{key}_cm"] = sc.score(pipe, cfg.source)
+                    say(f"  {'end of the walk' if key == 'walk_end' else f'+{cfg.tail_s:g} s'}: "
+                        f"{rec[f'error_{key}_cm']:.2f} cm, {pipe.steps} steps")
+            if kind == "end":
+                break
+            continue
+        if pipe.n_keyframes == 0:  # nothing to train on yet
+            time.sleep(max(0.0, min(next_kf * P, next_period) - t))
+            continue
+        s = time.perf_counter()
+        pipe.step()
+        step_ms.append(1e3 * (time.perf_counter() - s))
+    walking = [p for p in periods if p["walking"]]
+    mem = rec["memory_end"]
+    total = int(sum(mem.values()))
+    for r in rooms.values():
+        r["ratio_end"] = round(r["end_cm"] / r["after_visit_cm"], 3) if r["after_visit_cm"] > 0 else None
+    rec.update({
+        "keyframes": int(pipe.n_keyframes), "steps": int(pipe.steps),
+        "step_ms": {"mean": round(float(np.mean(step_ms)), 2) if step_ms else None,
+                    "p95": round(float(np.percentile(step_ms, 95)), 2) if step_ms else None, "n": len(step_ms)},
+        "keyframe_late_s": {"mean": round(float(np.mean(late)), 3) if late else None,
+                            "max": round(float(np.max(late)), 3) if late else None},
+        "memory_bytes": total, "memory_per_keyframe": int(total / max(pipe.n_keyframes, 1)),
+        "bytes_per_s": round(sum(p["bytes"] for p in walking) / (len(walking) * P), 1) if walking else None,
+        "bytes_per_s_all": round(sum(p["bytes_all"] for p in walking) / (len(walking) * P), 1) if walking else None,
+        "bytes_per_s_tail": round(sum(p["bytes"] for p in periods if not p["walking"])
+                                  / max(1, len(periods) - len(walking)) / P, 1),
+        "rooms": rooms, "periods": periods,
+    })
+    rec["bytes_ratio"] = round(rec["bytes_per_s"] / rec["bytes_per_s_all"], 4) if rec["bytes_per_s_all"] else None
+    return rec
