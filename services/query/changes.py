@@ -8,13 +8,9 @@ import numpy as np
 from aisdf.structure.surfel_types import Surfels
 
 
-def _half_axes(s: Surfels) -> tuple[np.ndarray, np.ndarray]:
-    return 0.5 * s.axis1 * s.extent[:, :1], 0.5 * s.axis2 * s.extent[:, 1:2]
-
-
 def _surfel_box(s: Surfels) -> np.ndarray:
     """(N, 2, 3) world boxes of the rectangles."""
-    h1, h2 = _half_axes(s)
+    h1, h2 = s.half_axes()
     half = np.abs(h1) + np.abs(h2)
     return np.stack([s.center - half, s.center + half], axis=1)
 
@@ -38,8 +34,8 @@ def surfel_changes(ref: Surfels | None, new: Surfels | None, tol: float = 0.0) -
     k = min(4, len(ref))
     _, nn = cKDTree(ref.center).query(new.center, k=k)
     nn = nn.reshape(len(new), k)
-    r1, r2 = _half_axes(ref)
-    n1, n2 = _half_axes(new)
+    r1, r2 = ref.half_axes()
+    n1, n2 = new.half_axes()
     match = np.full(len(new), -1)
     taken = np.zeros(len(ref), bool)
     best = np.full(len(new), np.inf)

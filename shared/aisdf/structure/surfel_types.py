@@ -61,10 +61,13 @@ class Surfels:
     def area(self) -> np.ndarray:
         return self.extent[:, 0] * self.extent[:, 1]
 
+    def half_axes(self) -> tuple[np.ndarray, np.ndarray]:
+        """(N, 3) twice: the rectangles' half sides along axis1 and axis2."""
+        return self.axis1 * self.extent[:, :1] / 2, self.axis2 * self.extent[:, 1:] / 2
+
     def corners(self) -> np.ndarray:
         """(N, 4, 3) corners in order (-,-), (+,-), (+,+), (-,+)."""
-        h1 = self.axis1 * self.extent[:, :1] / 2
-        h2 = self.axis2 * self.extent[:, 1:] / 2
+        h1, h2 = self.half_axes()
         c = self.center
         return np.stack([c - h1 - h2, c + h1 - h2, c + h1 + h2, c - h1 + h2], axis=1)
 
