@@ -24,3 +24,17 @@ def test_fuse_takes_the_smaller_distance_near_a_surfel():
 def test_fuse_without_gradients():
     sdf, grad, use = fuse(np.array([1.0]), None, np.array([0.2]), None)
     assert grad is None and sdf.tolist() == [0.2] and use.tolist() == [True]
+
+
+def test_a_far_surfel_still_bounds_the_answer_by_default_and_everywhere_without_a_radius():
+    # A surfel 1.5 m away bounds the distance to the nearest surface (it is observed surface):
+    # the default radius (2 m) lets it correct a network that says 1.9 m; beyond the radius
+    # only radius=None (the paper's rule, the smaller at every point) uses it.
+    sdf_i = np.array([1.9, 3.0, 1.0])
+    sdf_e = np.array([1.5, 2.5, 1.2])
+    sdf, _, use = fuse(sdf_i, None, sdf_e, None)
+    np.testing.assert_allclose(sdf, [1.5, 3.0, 1.0])
+    assert use.tolist() == [True, False, False]
+    sdf, _, use = fuse(sdf_i, None, sdf_e, None, radius=None)
+    np.testing.assert_allclose(sdf, [1.5, 2.5, 1.0])
+    assert use.tolist() == [True, True, False]

@@ -239,7 +239,9 @@ def test_answers_are_continuous_across_a_submap_boundary(submap_map):
 
 def test_bake_reevaluates_only_what_changed_and_equals_a_full_bake(submap_map):
     m = submap_map
-    e = engine_of(m)
+    # A 0.5 m fuse radius: a changed surfel's surroundings (the radius + 5 cm) then stay a
+    # small part of this small map; at the default 2 m they would cover most of it.
+    e = engine_of(m, fuse_radius=0.5)
     first = e.bake_now().field
     full_evals = first.stats["evaluations"]
     assert first.stats["reused"] == 0 and full_evals > 1000
@@ -269,7 +271,7 @@ def test_bake_reevaluates_only_what_changed_and_equals_a_full_bake(submap_map):
     third = e.bake_now().field
     assert 0 < third.stats["evaluations"] < 0.5 * full_evals, third.stats
     # The incremental bake is the full bake of the same map.
-    f2 = QueryEngine(device="cpu")
+    f2 = QueryEngine(device="cpu", fuse_radius=0.5)
     for cc in CELLS:
         f2.set_submap(snap2 if cc == c else m["snaps"][cc])
     f2.set_surfels(protocol.SurfelMap.from_msg(protocol.unpack(protocol.pack(smap.to_msg()))))

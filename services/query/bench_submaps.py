@@ -23,6 +23,7 @@ import torch
 from aisdf import protocol
 from aisdf.baked import bake
 from aisdf.mapping.frames import Frame
+from aisdf.structure.fusion import DEFAULT_FUSE_RADIUS
 from aisdf.submaps.pipeline import SubmapPipeline
 from aisdf.synthetic import SyntheticSequence
 
@@ -53,11 +54,13 @@ def main(argv: list[str] | None = None) -> None:
                     "only published into the engine)")
     ap.add_argument("--width", type=int, default=32, help="network width (the bake's cost is per evaluation)")
     ap.add_argument("--mesh-resolution", type=float, default=0.1)
+    ap.add_argument("--fuse-radius", type=float, default=DEFAULT_FUSE_RADIUS,
+                    help="the engine's fuse_radius (m): how far around a changed surfel a re-bake re-evaluates")
     args = ap.parse_args(argv)
     torch.set_num_threads(1)
     seq = SyntheticSequence(building=args.building, n_frames=args.frames, H=60, W=80, seed=0)
     p = SubmapPipeline.from_settings("cpu", {"network": {"width": args.width}, "n_rays": 40})
-    e = QueryEngine(device="cpu", bake_threads=1)
+    e = QueryEngine(device="cpu", bake_threads=1, fuse_radius=args.fuse_radius)
     version = 0
     print(f"{args.building}: {args.frames} frames, a keyframe every {args.every}, {args.steps} steps each, "
           f"published every {args.period} keyframes; width {args.width}")

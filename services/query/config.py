@@ -7,6 +7,7 @@ from typing import Literal
 from pydantic import Field
 
 from aisdf.config import ServiceConfig
+from aisdf.structure.fusion import DEFAULT_FUSE_RADIUS
 
 
 class QueryConfig(ServiceConfig):
@@ -18,7 +19,9 @@ class QueryConfig(ServiceConfig):
     torch_threads: int | None = Field(1, ge=1, description="torch CPU threads per evaluation; None keeps torch's "
                                       "default. Parallelism comes from `workers` and `bake_threads` instead: several "
                                       "threads each running single-threaded torch do not spin-wait on a busy machine")
-    fuse_radius: float = Field(0.5, gt=0, description="fused source uses a surfel only when it is this close (m)")
+    fuse_radius: float = Field(DEFAULT_FUSE_RADIUS, gt=0, description="fused source uses a surfel only when it is "
+                               "this close (m); the incremental bake re-evaluates this far (+5 cm) around changed "
+                               "surfels (aisdf.structure.fusion)")
     mesh_resolution: float = Field(0.05, gt=0, description="default marching-cubes voxel size (m)")
     mesh_max_cells: int = Field(16_000_000, ge=1, description="largest marching-cubes grid; above it: too_large")
     mesh_tile: int = Field(64, ge=2, le=1024, description="marching cubes in tiles of at most this many samples per "

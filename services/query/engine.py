@@ -43,7 +43,7 @@ import torch
 from aisdf import protocol
 from aisdf.baked import BakeConfig, BakedField, bake
 from aisdf.collision import chomp_cost
-from aisdf.structure.fusion import fuse
+from aisdf.structure.fusion import DEFAULT_FUSE_RADIUS, fuse
 from aisdf.network import build_model, load_numpy_state
 from aisdf.observed import ObservedGrid
 from aisdf.submaps.field import assign, blend
@@ -73,7 +73,7 @@ class BakedMap:
 
 class QueryEngine:
     def __init__(self, max_points: int = 1_000_000, chunk_points: int = 65_536, device: str = "auto",
-                 fuse_radius: float = 0.5, mesh_resolution: float = 0.05, mesh_max_cells: int = 16_000_000,
+                 fuse_radius: float = DEFAULT_FUSE_RADIUS, mesh_resolution: float = 0.05, mesh_max_cells: int = 16_000_000,
                  bake: bool = True, bake_config: BakeConfig | None = None, bake_threads: int = 2,
                  bake_duty: float = 0.75, bake_nice: int = 10, mesh_tile: int = 64, surfel_tol: float = 0.001):
         self.max_points = max_points

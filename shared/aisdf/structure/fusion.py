@@ -1,28 +1,42 @@
 """The fused SDF of the paper's Sec. IV-D: the smaller of the implicit (network) and the
-explicit (nearest surfel) distance, where a surfel is near; where the explicit one wins,
-its gradient is the direction from the surfel point. Shared by the query service and the
-benchmark so both compute the same thing."""
+explicit (nearest surfel) distance; where the explicit one wins, its gradient is the
+direction from the surfel point. Shared by the query service and the benchmark so both
+compute the same thing.
+
+The paper takes the smaller of the two at every point. Here a surfel counts only within
+``radius`` (``DEFAULT_FUSE_RADIUS``, 2 m), so that a changed surfel changes answers only
+near it (the query service's incremental bake re-evaluates only there). A surfel is a piece
+of observed surface, so the distance to it bounds the distance to the nearest surface
+however far it is: a larger radius only ever lowers an answer towards a surface that is
+there. Measured (2026-12-02, submap maps of ``aisdf bench scaling``'s walks, 200,000 points
+along seen rays, exact SDF): fused error at radius 0.5 / 1.0 / 1.5 / 2.0 m (and the paper's
+no radius): the floor 4.69 / 4.02 / 3.89 / 3.89 (3.89) cm, another floor run 5.48 / 4.51 /
+4.26 / 4.26 cm, the office 1.47 / 1.31 / 1.27 / 1.27 cm; the answers above the truth by
+more than 10 cm fell from 5.3 % to 3.7 % of the floor's points (the radius was 0.5 m before;
+no evaluation point of either building is farther than 2 m from a surfel)."""
 
 from __future__ import annotations
 
 import numpy as np
 
-DEFAULT_FUSE_RADIUS = 0.5
+DEFAULT_FUSE_RADIUS = 2.0
 
 
 def fuse(sdf_i: np.ndarray, grad_i: np.ndarray | None, sdf_e: np.ndarray, grad_e: np.ndarray | None,
-         radius: float = DEFAULT_FUSE_RADIUS) -> tuple[np.ndarray, np.ndarray | None, np.ndarray]:
+         radius: float | None = DEFAULT_FUSE_RADIUS) -> tuple[np.ndarray, np.ndarray | None, np.ndarray]:
     """Returns (sdf, gradient or None, mask of points where the explicit map won).
 
     As the paper does, the explicit value is the (unsigned) distance to the closest surfel
     point: surfels are one-sided pieces of surface, so "behind a surfel" is not "inside an
     obstacle" (under a table top, behind a cabinet's front). Inside is the network's to say:
     where it is negative it is smaller and wins. The explicit distance is used only within
-    ``radius`` of a surfel; far from every surfel it says nothing about obstacles in between.
+    ``radius`` of a surfel (see the module docstring; ``None``: everywhere, as the paper).
     ``sdf_e``/``grad_e`` may be signed (``surfel_map.explicit_sdf``); they are made unsigned
     here, the gradient pointing from the surfel point to the query point."""
     d_e = np.abs(sdf_e)
-    use = (d_e <= radius) & (d_e < sdf_i)
+    use = d_e < sdf_i
+    if radius is not None:
+        use &= d_e <= radius
     sdf = np.where(use, d_e, sdf_i)
     grad = None
     if grad_i is not None:
@@ -34,7 +48,7 @@ def fuse(sdf_i: np.ndarray, grad_i: np.ndarray | None, sdf_e: np.ndarray, grad_e
 
 
 def fused_sdf(points: np.ndarray, sdf_i: np.ndarray, grad_i: np.ndarray | None, surfels,
-              radius: float = DEFAULT_FUSE_RADIUS) -> tuple[np.ndarray, np.ndarray | None]:
+              radius: float | None = DEFAULT_FUSE_RADIUS) -> tuple[np.ndarray, np.ndarray | None]:
     """``fuse`` of the network's answer at ``points`` with the explicit distance to ``surfels``
     (none or empty: the network's answer as it is). Returns (sdf, gradient or None)."""
     if surfels is None or not len(surfels):
