@@ -209,7 +209,7 @@ def report(res: dict) -> str:
         cells = []
         for m in avail:
             v = res["criteria"][m].get(c)
-            cells.append("-" if v is None or v["value"] is None else f"{v['value']:.3g}" + ("" if v["ok"] is None else
+            cells.append("-" if v is None or v["value"] is None else f"{v['value']:.4g}" + ("" if v["ok"] is None else
                                                                         (" ✓" if v["ok"] else " ✗")))
         lines.append(f"| {c} | " + " | ".join(cells) + " |")
     for m, why in res.get("unavailable", {}).items():
