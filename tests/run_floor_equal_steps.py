@@ -31,14 +31,14 @@ seq, frames, spk = scaling_walk.scene_frames(a.scene, cfg)
 whole = scaling_walk.whole_scorer(seq, frames, cfg)
 tr = json.loads(a.training)
 if a.method == "single":
-    pipe = scaling._single("cpu", tr)
+    pipe = scaling.METHODS["single"][1]("cpu", tr)
 else:
     from aisdf.submaps.pipeline import SubmapPipeline
     pipe = SubmapPipeline.from_settings("cpu", training=tr, atlanta=True, submaps=json.loads(a.submaps))
 t0 = time.time(); debt = 0.0; tstep = 0.0
 for i, f in enumerate(frames):
     try:
-        pipe.add_keyframe(scaling_walk._frame(f))
+        pipe.add_keyframe(scaling_walk.frame_of(f))
     except ValueError as e:
         print("rejected", i, e)
     debt += a.per_kf

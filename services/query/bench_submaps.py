@@ -87,7 +87,7 @@ def main(argv: list[str] | None = None) -> None:
         inc = e.bake_now().field
         t_inc = time.perf_counter() - t
         t = time.perf_counter()
-        full = bake(e.fused_fn(e.state), e.state.observed, e.bake_config)
+        full = bake(e.baker.fused_fn(e.state), e.state.observed, e.baker.config)
         t_full = time.perf_counter() - t
         pts = e.state.observed.origin + np.random.default_rng(version).uniform(
             0, 1, (20_000, 3)) * (e.state.observed.bounds[1] - e.state.observed.origin)

@@ -247,8 +247,8 @@ class QueryNode:
     def info(self) -> dict:
         st, bk = self.engine.state, self.engine.baked
         return {"v": protocol.VERSION, "version": st.version if st else None, "epoch": st.epoch if st else None,
-                "baked_version": bk.state.version if bk else None, "bakes": self.engine.bakes,
-                "bake_failures": self.engine.bake_failures, "last_bake": self.engine.last_bake,
+                "baked_version": bk.state.version if bk else None, "bakes": self.engine.baker.bakes,
+                "bake_failures": self.engine.baker.failures, "last_bake": self.engine.baker.last,
                 "lag": self.engine.lag(), "answered": self.answered, "errors": self.errors, "busy": self.busy,
                 "queued": self._sdf_jobs.qsize(),
                 "submaps": len(st.submaps.submaps) if st is not None and st.submaps is not None else None,

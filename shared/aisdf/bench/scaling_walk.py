@@ -50,7 +50,8 @@ def scene_frames(name: str, cfg: ScalingConfig) -> tuple[Any, list[dict], float]
     return seq, [seq.frame(i) for i in range(n)], 1.0 / fps
 
 
-def _frame(f: dict):
+def frame_of(f: dict):
+    """The mapping Frame of a synthetic frame dict (what the walk adds as a keyframe)."""
     from ..mapping.frames import Frame
 
     return Frame(int(f["frame_id"]), float(f["stamp"]), f["depth"], f["K"], f["T_WC"])
@@ -124,7 +125,7 @@ def walk(pipe, seq, frames: list[dict], stream_per_kf: float, cfg: ScalingConfig
         if next_kf < n and t >= next_kf * P:
             late.append(t - next_kf * P)
             try:
-                pipe.add_keyframe(_frame(frames[next_kf]))
+                pipe.add_keyframe(frame_of(frames[next_kf]))
             except ValueError as e:
                 rec["rejected"] += 1
                 log.info("keyframe %d rejected: %s", next_kf, e)
