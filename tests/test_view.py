@@ -202,7 +202,7 @@ def test_view_without_rerun_fails_clearly(tmp_path):
 def test_box_rotations_take_the_box_axes_to_the_surfel_axes():
     from scipy.spatial.transform import Rotation
 
-    from aisdf.viewer import box_quaternions, vertex_normals
+    from aisdf.mapview import box_quaternions, vertex_normals
 
     rng = np.random.default_rng(0)
     R = Rotation.random(50, random_state=1).as_matrix()
@@ -215,7 +215,7 @@ def test_box_rotations_take_the_box_axes_to_the_surfel_axes():
 
 
 def test_map_view_colours_surfels_by_atlanta_direction(tmp_path):
-    from aisdf.viewer import MapView
+    from aisdf.mapview import MapView
 
     rec = rr.RecordingStream("aisdf-test")
     rec.save(str(tmp_path / "v.rrd"))
