@@ -129,8 +129,6 @@ class Baker:
         t = time.perf_counter()
         dirty, ref = self._dirty(cur, st) if cur is not None else (None, st.surfels)
         previous = cur.field if dirty is not None else None
-        if dirty is None:
-            ref = st.surfels
         fld = bake(self.fused_fn(st), st.observed, self.config, previous=previous, dirty=dirty)
         with self._lock:
             cur = self.baked

@@ -6,8 +6,8 @@ A new map is built completely aside and then swapped in with one reference
 assignment, so a request always sees one consistent map.
 
 The baked field (``aisdf.baked``): for every new map (weights or surfels), a background
-thread (``baker.Baker``) bakes the fused field over the observed space the mapper published; the finished
-bake is swapped in atomically. ``fused`` requests are answered from the newest bake
+thread (``baker.Baker``) bakes the fused field over the observed space the mapper
+published; the finished bake is swapped in atomically. ``fused`` requests are answered from the newest bake
 (points outside it: the network of the same map, so one reply is one map version); until
 a map's first bake is ready, and for ``exact`` requests or the other sources, from the
 network of the newest map.
@@ -22,8 +22,9 @@ their blend (``aisdf.submaps.field.blend``: each point from the submaps whose ex
 boxes hold it, C¹ across their overlaps), its observed space the union of theirs, its
 version the newest of the index's and the snapshots'. A new epoch replaces the whole set.
 The bake of a new submap map (``baker.py``) reuses every sample of the previous bake
-outside what changed, so a bake costs what changed, not the building. Meshes are marched in tiles of at most
-``mesh_tile``³ samples (one sample of overlap, seam vertices welded), in either mode.
+outside what changed, so a bake costs what changed, not the building. Meshes are marched
+in tiles of at most ``mesh_tile``³ samples (one sample of overlap, seam vertices welded),
+in either mode.
 """
 
 from __future__ import annotations
@@ -116,8 +117,7 @@ class QueryEngine:
             if sv[0] < snap.epoch:  # surfels of an older mapper incarnation: not this map's
                 surf, sv = None, (0, -1)
             self._state = MapState(snap.version, snap.step, net, bounds, surf, sv[1], snap.epoch, observed)
-            state = self._state
-        self.baker.map_arrived(state)
+            self.baker.map_arrived(self._state)
         return True
 
     def _load(self, snap: protocol.WeightSnapshot):
@@ -183,8 +183,7 @@ class QueryEngine:
             if idx is not None and idx.epoch == snap.epoch and self._complete(subs, idx):
                 version = max(version, idx.version)
             self._state = self._submap_state(SubmapSet(grid, subs), max(version, snap.version), snap.epoch, cur)
-            state = self._state
-        self.baker.map_arrived(state)
+            self.baker.map_arrived(self._state)
         return True
 
     @staticmethod
