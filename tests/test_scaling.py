@@ -77,3 +77,39 @@ def test_training_overrides_from_the_command_line_merge_over_the_profile():
     assert cfg.training["n_rays"] == scaling.PROFILES["quick"]["training"]["n_rays"]  # the profile's, kept
     with pytest.raises(SystemExit):
         p.parse_args(["--training", "[1, 2]"])
+
+
+def test_mean_record_averages_numbers_key_by_key():
+    from aisdf.bench.scaling_seeds import mean_record, mean_runs
+
+    a = {"error_end_cm": 4.0, "steps": 10, "step_ms": {"mean": 80.0, "n": 10}, "label": "x", "bytes_ratio": None,
+         "rooms": {"room1": {"after_visit_cm": 2.0, "end_cm": 3.0, "ratio_end": 1.5},
+                   "room2": {"after_visit_cm": 5.0, "end_cm": 5.0, "ratio_end": 1.0}}, "periods": [{"t": 1.0}]}
+    b = {"error_end_cm": 6.0, "steps": 21, "step_ms": {"mean": 100.0, "n": 21}, "label": "y", "bytes_ratio": 0.3,
+         "rooms": {"room1": {"after_visit_cm": 4.0, "end_cm": 3.0, "ratio_end": 0.75}}, "periods": []}
+    assert mean_record([a, b]) == {
+        "error_end_cm": 5.0, "steps": 15.5, "step_ms": {"mean": 90.0, "n": 15.5}, "label": "x", "bytes_ratio": None,
+        "rooms": {"room1": {"after_visit_cm": 3.0, "end_cm": 3.0, "ratio_end": 1.125}}}
+    # A room's ratio over seeds is the ratio of its mean errors (3.0 / 3.0), not the mean of the ratios (1.125).
+    runs = mean_runs([{"runs": {"submaps": {"floor": a}}}, {"runs": {"submaps": {"floor": b}, "single": {}}}])
+    assert set(runs) == {"submaps"} and runs["submaps"]["floor"]["rooms"]["room1"]["ratio_end"] == 1.0
+
+
+def test_several_seeds_are_judged_on_their_mean(tmp_path):
+    cfg = scaling.resolve("quick", out=str(tmp_path), progress=False, seeds=2, methods=["submaps"])
+    res = scaling.run(cfg)
+    assert res["seeds"] == [0, 1] and [p["seed"] for p in res["per_seed"]] == [0, 1]
+    each = [json.loads((tmp_path / f"seed-{s}" / "scaling.json").read_text()) for s in (0, 1)]
+    assert [e["config"]["seed"] for e in each] == [0, 1]
+    for scene in ("office", "floor"):
+        errs = [e["runs"]["submaps"][scene]["error_end_cm"] for e in each]
+        assert res["runs"]["submaps"][scene]["error_end_cm"] == pytest.approx(sum(errs) / 2, abs=1e-4)
+        assert [p["errors_cm"]["submaps"][scene]["end"] for p in res["per_seed"]] == errs
+    ratio = res["criteria"]["submaps"]["floor error <= 1.5x the office's (2 s after)"]["value"]
+    mean = res["runs"]["submaps"]
+    assert ratio == pytest.approx(mean["floor"]["error_end_cm"] / mean["office"]["error_end_cm"], rel=1e-3)
+    assert [p["criteria"] for p in res["per_seed"]] == [e["criteria"] for e in each]
+    saved = json.loads((tmp_path / "scaling.json").read_text())
+    assert saved["criteria"] == res["criteria"] and "periods" not in saved["runs"]["submaps"]["floor"]
+    md = (tmp_path / "scaling.md").read_text()
+    assert "mean over seeds 0, 1" in md and "| floor: submaps |" in md and " of 2 |" in md

@@ -25,8 +25,9 @@ Measured: per-step wall time (mean, p95), mapper memory (``pipe.memory()``: byte
 keyframes, models with their optimiser state, observed space; per keyframe), bytes
 published per second while walking (changed only, and republishing everything), the
 errors above, and the issue's criteria evaluated per method. ``run`` writes
-``scaling.json`` and ``scaling.md`` under ``out``; ``--quick`` is a tiny walk (a dozen
-keyframes a quarter second apart, spread over the whole floor) for CI.
+``scaling.json`` and ``scaling.md`` under ``out``; ``--seeds N`` walks every scene N times
+(seeds seed .. seed + N - 1) and judges the mean (``scaling_seeds.py``); ``--quick`` is a
+tiny walk (a dozen keyframes a quarter second apart, spread over the whole floor) for CI.
 """
 
 from __future__ import annotations
@@ -92,6 +93,8 @@ class ScalingConfig(Model):
     n_points: int = Field(200_000, ge=100, description="whole-map evaluation points")
     n_room_points: int = Field(20_000, ge=50, description="evaluation points per room")
     seed: int = Field(0, description="building, walk, noise and training seed")
+    seeds: int = Field(1, ge=1, description="walks per method and scene, seeds seed, seed + 1, ...; the table and "
+                       "the criteria take their mean (scaling_seeds.py)")
     threads: int | None = Field(None, ge=1, description="torch threads (None: torch's default)")
     out: str = Field("runs/bench-scaling", description="results folder")
     progress: bool = Field(True, description="print a line per event")
@@ -157,9 +160,11 @@ def _mb(b: int) -> str:
 
 def report(res: dict) -> str:
     cfg = res["config"]
+    seeds = res.get("seeds")
     lines = [f"Scaling: {', '.join(res['scenes'])}; {cfg['keyframes']} keyframes, one per {cfg['period_s']:g} s of "
              f"wall time, then {cfg['tail_s']:g} s more training; preset {cfg['preset']}; {res['machine']}. "
-             f"Errors are those of the {cfg.get('source', 'implicit')} answer unless said otherwise.", ""]
+             f"Errors are those of the {cfg.get('source', 'implicit')} answer unless said otherwise."
+             + (f" Every figure is the mean over seeds {', '.join(map(str, seeds))}." if seeds else ""), ""]
     avail = [m for m in res["methods"] if m in res["runs"]]
     src = cfg.get("source", "implicit")
     other = "implicit" if src == "fused" else "fused"
@@ -212,6 +217,10 @@ def report(res: dict) -> str:
             cells.append("-" if v is None or v["value"] is None else f"{v['value']:.4g}" + ("" if v["ok"] is None else
                                                                         (" ✓" if v["ok"] else " ✗")))
         lines.append(f"| {c} | " + " | ".join(cells) + " |")
+    if seeds:
+        from .scaling_seeds import seeds_report
+
+        lines += seeds_report(res, {m: METHODS[m][0] for m in METHODS})
     for m, why in res.get("unavailable", {}).items():
         lines.append(f"\n{m}: not run ({why})")
     return "\n".join(lines)
@@ -228,6 +237,10 @@ def _machine(threads: int | None) -> str:
 
 
 def run(cfg: ScalingConfig) -> dict:
+    if cfg.seeds > 1:
+        from .scaling_seeds import run_seeds
+
+        return run_seeds(cfg)
     import torch
 
     out = Path(cfg.out)
@@ -285,6 +298,8 @@ def add_arguments(p) -> None:
     p.add_argument("--preset", choices=["cpu", "paper", "auto"], help="training preset (default cpu)")
     p.add_argument("--n-points", type=int, help="whole-map evaluation points (default 200000)")
     p.add_argument("--seed", type=int)
+    p.add_argument("--seeds", type=int, help="walks per method and scene (seeds seed, seed + 1, ...); the table and "
+                   "the criteria take their mean, and each seed's figures follow (default 1)")
     p.add_argument("--source", choices=["fused", "implicit"], help="the answer judged (default fused, query/sdf's "
                    "default; the table shows both)")
     p.add_argument("--threads", type=int, help="torch threads")
@@ -309,7 +324,7 @@ def config_from_args(args) -> ScalingConfig:
     g = lambda k: getattr(args, k, None)  # noqa: E731
     return resolve("quick" if g("quick") else "full", **{k: g(k) for k in (
         "scenes", "methods", "keyframes", "period_s", "tail_s", "after_visit_s", "preset", "n_points", "seed",
-        "source", "threads", "out", "training")})
+        "seeds", "source", "threads", "out", "training")})
 
 
 def main(args) -> None:

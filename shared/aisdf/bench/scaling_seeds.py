@@ -1,0 +1,114 @@
+"""``aisdf bench scaling --seeds N``: the scaling walk once per seed, judged on the mean.
+
+One walk on wall time is a lottery: between default runs of the submaps on the same code
+the floor's error at the walk's end went 4.73-7.56 cm and the worst room's ratio
+1.01-1.20, as wide as the effects being compared. Each seed changes the furniture's
+jitter, the world frame, the walk, the depth noise and the training's draws; the rooms keep
+their names. With N seeds every run is kept under ``out/seed-<s>/`` and the top-level
+record holds, per method and scene, the mean of every figure over the seeds (a room's
+ratio is the ratio of its mean errors; rooms not scored in every seed are left out), the
+issue's criteria on those means, and each seed's own figures and criteria.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+if TYPE_CHECKING:
+    from .scaling import ScalingConfig
+
+# Per-walk detail that has no meaningful mean (kept in each seed's own record).
+_NOT_AVERAGED = {"periods"}
+
+
+def mean_record(recs: list[Any]) -> Any:
+    """Mean over records of the same shape: numbers averaged, dicts key by key (keys that
+    every record has, less ``_NOT_AVERAGED``), None where any is None, else the first's value."""
+    first = recs[0]
+    if any(r is None for r in recs):
+        return None
+    if all(isinstance(r, (int, float)) and not isinstance(r, bool) for r in recs):
+        return round(float(np.mean(recs)), 4)
+    if all(isinstance(r, dict) for r in recs):
+        return {k: mean_record([r[k] for r in recs]) for k in first
+                if k not in _NOT_AVERAGED and all(k in r for r in recs)}
+    return first
+
+
+def mean_runs(per_seed: list[dict]) -> dict:
+    """{method: {scene: mean record}} over the seeds' ``runs`` (methods and scenes every seed has)."""
+    out: dict[str, dict] = {}
+    for m in per_seed[0]["runs"]:
+        if not all(m in r["runs"] for r in per_seed):
+            continue
+        out[m] = {}
+        for s in per_seed[0]["runs"][m]:
+            if all(s in r["runs"][m] for r in per_seed):
+                rec = mean_record([r["runs"][m][s] for r in per_seed])
+                for room in rec.get("rooms", {}).values():
+                    a, e = room.get("after_visit_cm"), room.get("end_cm")
+                    room["ratio_end"] = round(e / a, 3) if a and e is not None else None
+                out[m][s] = rec
+    return out
+
+
+def run_seeds(cfg: ScalingConfig) -> dict:
+    """``scaling.run`` once per seed (``cfg.seed``, ``cfg.seed + 1``, ...), then the mean record."""
+    from .scaling import criteria, report, run
+
+    out = Path(cfg.out)
+    out.mkdir(parents=True, exist_ok=True)
+    seeds = [cfg.seed + i for i in range(cfg.seeds)]
+    t0 = time.time()
+    per_seed = []
+    for s in seeds:
+        if cfg.progress:
+            print(f"seed {s} ({seeds.index(s) + 1} of {len(seeds)})", flush=True)
+        per_seed.append(run(cfg.model_copy(update={"seed": s, "seeds": 1, "out": str(out / f"seed-{s}")})))
+    res: dict[str, Any] = {
+        "config": cfg.model_dump(mode="json"), "scenes": per_seed[0]["scenes"], "methods": per_seed[0]["methods"],
+        "machine": per_seed[0]["machine"], "seeds": seeds, "runs": mean_runs(per_seed),
+        "unavailable": {k: v for r in per_seed for k, v in r.get("unavailable", {}).items()},
+        "scene_info": per_seed[0]["scene_info"],
+        "per_seed": [{"seed": s, "out": str(out / f"seed-{s}"), "criteria": r["criteria"],
+                      "errors_cm": {m: {sc: {"walk_end": rr["error_walk_end_cm"], "end": rr["error_end_cm"]}
+                                        for sc, rr in by.items()} for m, by in r["runs"].items()}}
+                     for s, r in zip(seeds, per_seed)],
+    }
+    res["criteria"] = criteria(res)
+    res["wall_s"] = round(time.time() - t0, 1)
+    (out / "scaling.json").write_text(json.dumps(res, indent=1))
+    (out / "scaling.md").write_text(report(res) + "\n")
+    return res
+
+
+def seeds_report(res: dict, labels: dict[str, str]) -> list[str]:
+    """Lines for the report: each seed's errors and how many seeds pass each criterion."""
+    seeds = [p["seed"] for p in res["per_seed"]]
+    tail = f"+{res['config']['tail_s']:g} s"
+    lines = ["", f"Each seed (the tables above are the means over seeds {', '.join(map(str, seeds))}; "
+                 f"errors at the end of the walk / {tail}, cm):", "",
+             "| | " + " | ".join(f"seed {s}" for s in seeds) + " |", "|---|" + "---:|" * len(seeds)]
+    for m, by in res["runs"].items():
+        for sc in by:
+            cells = []
+            for p in res["per_seed"]:
+                e = p["errors_cm"].get(m, {}).get(sc)
+                cells.append(f"{e['walk_end']:.2f} / {e['end']:.2f}" if e else "-")
+            lines.append(f"| {sc}: {labels[m]} | " + " | ".join(cells) + " |")
+    lines += ["", "| criterion, seeds passing | " + " | ".join(labels[m] for m in res["criteria"]) + " |",
+              "|---|" + "---|" * len(res["criteria"])]
+    names = list(dict.fromkeys(c for m in res["criteria"] for c in res["criteria"][m]))
+    for c in names:
+        cells = []
+        for m in res["criteria"]:
+            oks = [p["criteria"].get(m, {}).get(c, {}).get("ok") for p in res["per_seed"]]
+            judged = [o for o in oks if o is not None]
+            cells.append(f"{sum(judged)} of {len(judged)}" if judged else "-")
+        lines.append(f"| {c} | " + " | ".join(cells) + " |")
+    return lines
