@@ -272,6 +272,24 @@ def test_window_composition_and_loss_weighting():
     assert abs(hits / 2000 - 100 / 109) < 0.03
 
 
+def test_uniform_replay_reaches_keyframes_whose_loss_estimate_is_low():
+    rng = np.random.default_rng(1)
+    store = _store(12)
+    store.update_losses(list(range(12)), np.array([1e-9] * 5 + [100.0] * 5 + [1.0, 1.0]))
+    # By loss alone the five low-loss keyframes (a stale estimate: a room learnt earlier) are never replayed.
+    assert all(max(store.window(rng)[2:]) >= 5 and min(store.window(rng)[2:]) >= 5 for _ in range(200))
+    seen = np.zeros(12)
+    for _ in range(2000):
+        w = store.window(rng, uniform=1)
+        assert w[:2] == [11, 10] and len(w) == 5 and len(set(w)) == 5 and max(w[2:]) < 10
+        seen[w[2]] += 1  # the uniform draw
+        assert min(w[3:]) >= 5  # the other two: by loss
+    assert np.all(np.abs(seen[:10] / 2000 - 0.1) < 0.025)  # uniform over the 10 older keyframes
+    all_uniform = [store.window(rng, uniform=3)[2:] for _ in range(2000)]
+    assert np.mean([min(w) < 5 for w in all_uniform]) == pytest.approx(1 - (10 - 5) * 4 * 3 / (10 * 9 * 8), abs=0.03)
+    assert store.window(rng, uniform=9)[:2] == [11, 10] and len(store.window(rng, uniform=9)) == 5
+
+
 def test_max_keyframes_drops_lowest_loss_not_newest():
     store = _store(3, max_keyframes=3)
     store.update_losses([0, 1, 2], np.array([2.0, 1.0, 0.1]))

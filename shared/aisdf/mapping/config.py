@@ -26,6 +26,9 @@ class TrainingConfig(Model):
 
     # Window (isdf-reference.md, "Sampling").
     window_size: int = Field(5, ge=1, description="frames per step: the newest two keyframes + loss-weighted replay")
+    replay_uniform: int = Field(
+        0, ge=0, description="beyond iSDF: this many of the replayed frames of a window are drawn uniformly from "
+        "the stored keyframes, the rest by loss (iSDF: all by loss)")
     max_keyframes: int = Field(
         200, ge=2, description="memory bound; beyond it the lowest-loss keyframe (not the newest two) is dropped"
     )

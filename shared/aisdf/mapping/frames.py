@@ -138,16 +138,20 @@ class KeyframeStore:
     def losses(self) -> np.ndarray:
         return np.array([self._loss(k) for k in self.keyframes])
 
-    def window(self, rng: np.random.Generator) -> list[int]:
-        """Indices into ``keyframes``: [newest, second newest, replayed...] (fewer when fewer are stored)."""
+    def window(self, rng: np.random.Generator, uniform: int = 0) -> list[int]:
+        """Indices into ``keyframes``: [newest, second newest, replayed...] (fewer when fewer are
+        stored). Of the replayed, ``uniform`` are drawn uniformly, the rest by loss."""
         n = len(self.keyframes)
         newest = list(range(n - 1, max(n - 3, -1), -1))[: self.window_size]
         n_replay = min(self.window_size - len(newest), n - len(newest))
         if n_replay <= 0:
             return newest
+        n_uni = min(uniform, n_replay)
+        uni = rng.choice(n - 2, size=n_uni, replace=False) if n_uni else np.zeros(0, np.int64)
         w = np.maximum(self.losses()[: n - 2], 0.0) + 1e-12
-        replay = rng.choice(n - 2, size=n_replay, replace=False, p=w / w.sum())
-        return newest + [int(i) for i in replay]
+        w[uni] = 0.0
+        replay = rng.choice(n - 2, size=n_replay - n_uni, replace=False, p=w / w.sum()) if n_replay > n_uni else []
+        return newest + [int(i) for i in uni] + [int(i) for i in replay]
 
     def update_losses(self, indices: list[int], losses: np.ndarray) -> None:
         """Overwrite the loss estimate of each keyframe in the window (NaN = frame had no samples)."""

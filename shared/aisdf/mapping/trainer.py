@@ -103,7 +103,7 @@ class Trainer:
             raise RuntimeError("step() needs at least one keyframe")
         cfg, dev = self.cfg, self.device
         t0 = time.perf_counter()
-        idx = self.store.window(self.rng)
+        idx = self.store.window(self.rng, cfg.replay_uniform)
         batch = sample_batch([self.store.keyframes[i] for i in idx], cfg, self.rng)
         pts = torch.from_numpy(batch.points_W).to(dev)
         z, D = torch.from_numpy(batch.z).to(dev), torch.from_numpy(batch.ray_depth).to(dev)
