@@ -13,8 +13,8 @@ refinement step on its own keyframes. The cost of a step does not grow with the 
 
 The Atlanta frame, surfels and the global surfel map are shared (one ``Structure``). The
 same interface as :class:`aisdf.pipeline.MappingPipeline`: ``add_keyframe``, ``step``,
-``sdf``, ``map_messages`` (only the submaps that changed, ``map/index`` and the surfel map),
-``memory``, ``checkpoint``/``restore``.
+``sdf``, ``map_messages`` (only the submaps that changed, ``map/index`` and the surfel map;
+``publish.py``), ``memory``, ``checkpoint``/``restore`` (``persist.py``).
 
 Ownership: a submap is a unit of work keyed by its id. Several mapper processes could each
 own a share of the ids (a hash of the id, or a list) and subscribe to the same keyframes;
@@ -32,18 +32,18 @@ import numpy as np
 import torch
 from pydantic import Field
 
-from .. import geometry, keys, network, protocol
+from .. import geometry, network, protocol
 from ..config import Model
 from ..mapping.frames import Frame, Keyframe
 from ..mapping.presets import submap_training_config
-from ..mapping.trainer import Trainer, _optimizer_from_numpy, _optimizer_to_numpy
+from ..mapping.trainer import Trainer
 from ..observed import ObservedSpace
-from ..pipeline import MIN_VALID_PIXELS, frame_from_keyframe, grow_bounds, surfel_map_message
+from ..pipeline import MIN_VALID_PIXELS, frame_from_keyframe, grow_bounds
 from .field import blend
 from .grid import SubmapGrid, cell_id, parse_cell_id
+from .persist import CHECKPOINT_FORMAT, CHECKPOINT_VERSION, SubmapCheckpoints
+from .publish import SubmapPublishing
 
-CHECKPOINT_FORMAT = "aisdf-submaps-checkpoint"
-CHECKPOINT_VERSION = 1
 PRIOR_REACH_M = 1.0  # surfels this far beyond a submap's box still bound its samples
 Cell = tuple[int, int, int]
 
@@ -90,7 +90,11 @@ class Submap:
         return cell_id(self.cell)
 
 
-class SubmapPipeline:
+class SubmapPipeline(SubmapPublishing, SubmapCheckpoints):
+    """Keyframes in, submaps trained (``add_keyframe``, ``step``); answers (``sdf``,
+    ``sdf_grad``); publication (``map_messages``, ``publish.py``); checkpoints
+    (``checkpoint``/``restore``, ``persist.py``)."""
+
     def __init__(self, cfg, atlanta: bool = True, submaps: SubmapConfig | None = None,
                  atlanta_state: dict | None = None):
         self.cfg = cfg
@@ -366,154 +370,12 @@ class SubmapPipeline:
         f, g, _ = blend(self.grid, self._evaluators(), np.asarray(points, np.float64).reshape(-1, 3), grad=True)
         return f, g
 
-    # ------------------------------------------------------------------ outputs
-    def _observed_msg(self, sm: Submap) -> dict | None:
-        key = (len(self.observed),)
-        if sm.observed_key != key:
-            c, grow = sm.cell, self.grid.overlap_m + self.observed.voxel
-            g = self.observed.grid(keep=lambda centres: self.grid.inside(c, centres, grow=grow))
-            sm.observed_msg, sm.observed_key = (None if g is None else g.to_msg()), key
-        return sm.observed_msg
-
-    def submap_snapshot(self, sm: Submap, version: int, epoch: int = 0) -> protocol.WeightSnapshot:
-        model = dict(sm.trainer.model_spec())
-        c = sm.cell
-        model["bounds"] = [self.grid.corners_W(c, self.grid.overlap_m).min(0).tolist(),
-                           self.grid.corners_W(c, self.grid.overlap_m).max(0).tolist()]
-        return protocol.WeightSnapshot(version, sm.trainer.steps, time.time(), model, sm.trainer.state_numpy(),
-                                       epoch, self._observed_msg(sm), {"id": sm.id, "grid": self.grid.to_msg()})
-
-    def index(self, version: int, epoch: int = 0) -> protocol.SubmapIndex:
-        return protocol.SubmapIndex(version, time.time(), self.grid.to_msg(),
-                                    {sm.id: {"version": sm.version, "step": max(sm.published_step, 0)}
-                                     for sm in self.submaps.values()}, epoch)
-
-    def _due(self, sm: Submap, mark: bool = True) -> bool:
-        """Is this changed submap published now? New ones and those the newest keyframes see
-        (where the robot is), at once; one changed only by background refinement out of view,
-        once it has ``background_publish_steps`` unpublished steps or has waited
-        ``background_publish_periods`` publications (bytes follow what changed, not the
-        refinement's single steps)."""
-        s = self.sub_cfg
-        if sm.published_step < 0 or any(sm.cell in seen for seen in self._recent):
-            return True
-        since = self._publications if sm.dirty_since is None else sm.dirty_since
-        if mark:
-            sm.dirty_since = since
-        return (sm.trainer.steps - sm.published_step >= s.background_publish_steps
-                or self._publications - since >= s.background_publish_periods)
-
-    def map_messages(self, version: int, changed_only: bool = True, epoch: int = 0,
-                     mark: bool = True) -> list[tuple[str, bytes]]:
-        """What the mapper publishes for map ``version``: every submap trained since its last
-        publication that is due (``_due``; all of them with ``changed_only`` False) on
-        ``map/submaps/<id>``, the index on ``map/index`` and the global surfel map. With
-        ``mark`` False nothing is recorded as published (what a publication would cost)."""
-        out = []
-        if self.grid is None:
-            return out
-        if changed_only and mark:
-            self._publications += 1
-        for sm in self.submaps.values():
-            if changed_only and (sm.trainer.steps == sm.published_step or not self._due(sm, mark)):
-                continue
-            if mark:
-                sm.published_step, sm.version, sm.dirty_since = sm.trainer.steps, version, None
-            snap = self.submap_snapshot(sm, version, epoch)
-            out.append((f"{keys.MAP_SUBMAPS}/{sm.id}", protocol.pack(snap.to_msg())))
-        out.append((keys.MAP_INDEX, protocol.pack(self.index(version, epoch).to_msg())))
-        smap = self.surfel_map(version)
-        if smap is not None:
-            smap.epoch = epoch
-            out.append((keys.MAP_SURFELS, protocol.pack(smap.to_msg())))
-        return out
-
-    def surfels(self):
-        return None if self.structure is None else self.structure.global_surfels()
-
-    def surfel_map(self, version: int) -> protocol.SurfelMap | None:
-        return surfel_map_message(self.structure, version)
-
     def memory(self) -> dict[str, int]:
         kf = sum(k.frame.nbytes() + k.depth.nbytes + k.normals_W.nbytes for k in self.frames.values())
         masks = sum(v.pixel_mask.nbytes for sm in self.submaps.values() for v in sm.trainer.store.keyframes
                     if v.pixel_mask is not None)
         n_par = sum(p.numel() for sm in self.submaps.values() for p in sm.trainer.net.parameters())
         return {"keyframes": int(kf + masks), "model": int(3 * 4 * n_par), "observed": int(self.observed.nbytes())}
-
-    # ------------------------------------------------------------------ checkpoints
-    def checkpoint(self) -> dict:
-        """Everything to resume: keyframes once, each submap's weights, AdamW state, its
-        keyframe keys and loss estimates, counters and generators."""
-        subs = []
-        for sm in self.submaps.values():
-            tr = sm.trainer
-            subs.append({
-                "cell": list(sm.cell), "config": tr.cfg.model_dump(mode="json"), "state": tr.state_numpy(),
-                "optimizer": _optimizer_to_numpy(tr.optimizer.state_dict()), "steps": tr.steps,
-                "dropped": tr.store.dropped, "rng": tr.rng.bit_generator.state, "published_step": sm.published_step,
-                "version": sm.version, "dirty_since": sm.dirty_since, "lr_state": tr.lr_state(),
-                "keyframes": [[k.frame.sensor, int(k.frame.frame_id), k.loss] for k in tr.store.keyframes],
-            })
-        return {
-            "format": CHECKPOINT_FORMAT, "version": CHECKPOINT_VERSION, "config": self.cfg.model_dump(mode="json"),
-            "submap_config": self.sub_cfg.model_dump(mode="json"), "atlanta": self.atlanta_on,
-            "structure": None if self.structure is None else self.structure.state_dict(),
-            "grid": None if self.grid is None else self.grid.to_msg(),
-            "frames": [k.frame.to_dict() for k in self.frames.values()],
-            "waiting": [list(k.frame.key) for k in self._waiting],
-            "recent": [[[list(c), n] for c, n in seen.items()] for seen in self._recent],
-            "credit": [[list(c), v] for c, v in self._credit.items()], "since_keyframe": self._since_keyframe,
-            "submaps": subs, "steps": self._steps, "publications": self._publications, "rng": self.rng.bit_generator.state,
-            "bounds": None if self._bounds is None else self._bounds.tolist(),
-            "observed": self.observed.state_dict(),
-        }
-
-    @classmethod
-    def restore(cls, d: dict) -> "SubmapPipeline":
-        if d.get("format") != CHECKPOINT_FORMAT:
-            raise ValueError(f"not a submap checkpoint (format {d.get('format')!r})")
-        if int(d.get("version", 0)) > CHECKPOINT_VERSION:
-            raise ValueError(f"checkpoint version {d['version']} is newer than this build's {CHECKPOINT_VERSION}")
-        from ..mapping.config import TrainingConfig
-
-        p = cls(TrainingConfig.model_validate(d["config"]), atlanta=d["atlanta"],
-                submaps=SubmapConfig.model_validate(d["submap_config"]), atlanta_state=d.get("structure"))
-        for fd in d["frames"]:
-            f = Frame.from_dict(fd)
-            p.frames[f.key] = Keyframe.make(f, p.cfg.max_depth)
-        if d.get("grid") is not None:
-            p.grid = SubmapGrid.from_msg(d["grid"])
-        p._waiting = [p.frames[(s, int(i))] for s, i in d.get("waiting", [])]
-        p._recent = [{tuple(c): int(n) for c, n in seen} for seen in d.get("recent", [])]
-        for sd in d["submaps"]:
-            c = tuple(int(x) for x in sd["cell"])
-            tr = Trainer(TrainingConfig.model_validate(sd["config"]))
-            p._attach_prior(c, tr)
-            network.load_numpy_state(tr.net, sd["state"])
-            tr.optimizer.load_state_dict(_optimizer_from_numpy(sd["optimizer"]))
-            tr._steps = int(sd["steps"])
-            tr.rng.bit_generator.state = sd["rng"]
-            tr.load_lr_state(sd.get("lr_state"))
-            sm = Submap(c, tr, int(sd["published_step"]), int(sd["version"]))
-            sm.dirty_since = sd.get("dirty_since")
-            p.submaps[c] = sm
-            for sensor, fid, loss in sd["keyframes"]:
-                kf = p.frames[(sensor, int(fid))]
-                tr.store.add_prepared(kf.view(p._pixel_mask(kf, c), p._region(c)))
-                tr.store.keyframes[-1].loss = None if loss is None else float(loss)
-                sm.seen_by.append(kf.frame.key)
-            tr.store.dropped = int(sd["dropped"])
-        p._steps = int(d["steps"])
-        p._publications = int(d.get("publications", 0))
-        p._since_keyframe = int(d.get("since_keyframe", 0))
-        for c, v in d.get("credit", []):
-            p._credit[tuple(int(x) for x in c)] = float(v)
-        p.rng.bit_generator.state = d["rng"]
-        if d.get("bounds") is not None:
-            p._bounds = np.asarray(d["bounds"])
-        p.observed.load_state_dict(d["observed"])
-        return p
 
 
 def restore_pipeline(d: dict):
@@ -525,4 +387,5 @@ def restore_pipeline(d: dict):
     return MappingPipeline.restore(d)
 
 
-__all__ = ["SubmapConfig", "SubmapPipeline", "parse_cell_id", "restore_pipeline"]
+__all__ = ["CHECKPOINT_FORMAT", "CHECKPOINT_VERSION", "SubmapConfig", "SubmapPipeline", "parse_cell_id",
+           "restore_pipeline"]

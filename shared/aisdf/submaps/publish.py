@@ -1,0 +1,93 @@
+"""What the submap mapper publishes (protocol 1.3; see the README's protocol section): a
+changed submap's weights on ``map/submaps/<id>``, the index on ``map/index`` and the global
+surfel map on ``map/surfels``. Only submaps that changed and are due go out: those in view
+at once, those refined in the background out of view in batches, so the bytes on the wire
+follow what changed, not the size of the map.
+
+A mixin of :class:`~aisdf.submaps.pipeline.SubmapPipeline` (it reads the pipeline's grid,
+submaps, observed space, structure and recent cells); each submap's publication state
+(published step, version, first unpublished publication, cached observed grid) lives on its
+``Submap`` and is checkpointed with it.
+"""
+
+from __future__ import annotations
+
+import time
+from typing import TYPE_CHECKING
+
+from .. import keys, protocol
+from ..pipeline import surfel_map_message
+
+if TYPE_CHECKING:
+    from .pipeline import Submap
+
+
+class SubmapPublishing:
+    _publications: int  # map_messages(changed_only=True) calls, set by the pipeline
+
+    def _observed_msg(self, sm: Submap) -> dict | None:
+        key = (len(self.observed),)
+        if sm.observed_key != key:
+            c, grow = sm.cell, self.grid.overlap_m + self.observed.voxel
+            g = self.observed.grid(keep=lambda centres: self.grid.inside(c, centres, grow=grow))
+            sm.observed_msg, sm.observed_key = (None if g is None else g.to_msg()), key
+        return sm.observed_msg
+
+    def submap_snapshot(self, sm: Submap, version: int, epoch: int = 0) -> protocol.WeightSnapshot:
+        model = dict(sm.trainer.model_spec())
+        c = sm.cell
+        model["bounds"] = [self.grid.corners_W(c, self.grid.overlap_m).min(0).tolist(),
+                           self.grid.corners_W(c, self.grid.overlap_m).max(0).tolist()]
+        return protocol.WeightSnapshot(version, sm.trainer.steps, time.time(), model, sm.trainer.state_numpy(),
+                                       epoch, self._observed_msg(sm), {"id": sm.id, "grid": self.grid.to_msg()})
+
+    def index(self, version: int, epoch: int = 0) -> protocol.SubmapIndex:
+        return protocol.SubmapIndex(version, time.time(), self.grid.to_msg(),
+                                    {sm.id: {"version": sm.version, "step": max(sm.published_step, 0)}
+                                     for sm in self.submaps.values()}, epoch)
+
+    def _due(self, sm: Submap, mark: bool = True) -> bool:
+        """Is this changed submap published now? New ones and those the newest keyframes see
+        (where the robot is), at once; one changed only by background refinement out of view,
+        once it has ``background_publish_steps`` unpublished steps or has waited
+        ``background_publish_periods`` publications (bytes follow what changed, not the
+        refinement's single steps)."""
+        s = self.sub_cfg
+        if sm.published_step < 0 or any(sm.cell in seen for seen in self._recent):
+            return True
+        since = self._publications if sm.dirty_since is None else sm.dirty_since
+        if mark:
+            sm.dirty_since = since
+        return (sm.trainer.steps - sm.published_step >= s.background_publish_steps
+                or self._publications - since >= s.background_publish_periods)
+
+    def map_messages(self, version: int, changed_only: bool = True, epoch: int = 0,
+                     mark: bool = True) -> list[tuple[str, bytes]]:
+        """What the mapper publishes for map ``version``: every submap trained since its last
+        publication that is due (``_due``; all of them with ``changed_only`` False) on
+        ``map/submaps/<id>``, the index on ``map/index`` and the global surfel map. With
+        ``mark`` False nothing is recorded as published (what a publication would cost)."""
+        out = []
+        if self.grid is None:
+            return out
+        if changed_only and mark:
+            self._publications += 1
+        for sm in self.submaps.values():
+            if changed_only and (sm.trainer.steps == sm.published_step or not self._due(sm, mark)):
+                continue
+            if mark:
+                sm.published_step, sm.version, sm.dirty_since = sm.trainer.steps, version, None
+            snap = self.submap_snapshot(sm, version, epoch)
+            out.append((f"{keys.MAP_SUBMAPS}/{sm.id}", protocol.pack(snap.to_msg())))
+        out.append((keys.MAP_INDEX, protocol.pack(self.index(version, epoch).to_msg())))
+        smap = self.surfel_map(version)
+        if smap is not None:
+            smap.epoch = epoch
+            out.append((keys.MAP_SURFELS, protocol.pack(smap.to_msg())))
+        return out
+
+    def surfels(self):
+        return None if self.structure is None else self.structure.global_surfels()
+
+    def surfel_map(self, version: int) -> protocol.SurfelMap | None:
+        return surfel_map_message(self.structure, version)
