@@ -312,7 +312,7 @@ def test_presets():
     # submaps on the cpu preset: narrower networks whose rate settles; the caller's overrides win
     sub = submap_training_config("cpu", seed=3)
     assert (sub.network.width, sub.lr_settle, sub.n_rays, sub.seed) == (64, 2e-4, cpu.n_rays, 3)
-    assert (sub.lr_halflife_steps, sub.lr_settle_after) == (10, 5)
+    assert (sub.lr_halflife_steps, sub.lr_settle_after, sub.replay_uniform, cpu.replay_uniform) == (10, 5, 1, 0)
     assert cpu.lr_settle is None and submap_training_config("cpu", network={"width": 32}).network.width == 32
     assert submap_training_config("paper") == paper
 

@@ -113,3 +113,5 @@ def test_several_seeds_are_judged_on_their_mean(tmp_path):
     assert saved["criteria"] == res["criteria"] and "periods" not in saved["runs"]["submaps"]["floor"]
     md = (tmp_path / "scaling.md").read_text()
     assert "mean over seeds 0, 1" in md and "| floor: submaps |" in md and " of 2 |" in md
+    steps_row = next(line for line in md.splitlines() if line.startswith("| training steps"))
+    assert "." not in steps_row  # mean step counts print rounded

@@ -171,8 +171,9 @@ def report(res: dict) -> str:
     head = "| | " + " | ".join(f"{s}: {METHODS[m][0]}" for s in res["scenes"] for m in avail) + " |"
     lines += [head, "|---|" + "---:|" * (len(res["scenes"]) * len(avail))]
     rows = [
-        ("keyframes", lambda r: f"{r['keyframes']}"),
-        ("training steps (walk / +tail)", lambda r: f"{r['steps_walk_end']:,} / {r['steps_end'] - r['steps_walk_end']:,}"),
+        ("keyframes", lambda r: f"{r['keyframes']:,.0f}"),  # means over seeds are not whole: rounded
+        ("training steps (walk / +tail)",
+         lambda r: f"{r['steps_walk_end']:,.0f} / {r['steps_end'] - r['steps_walk_end']:,.0f}"),
         ("keyframes added late, mean / max (s)", lambda r: f"{r['keyframe_late_s']['mean']:.2f} / "
          f"{r['keyframe_late_s']['max']:.2f}"),
         ("step time mean / p95 (ms)", lambda r: f"{r['step_ms']['mean']:.1f} / {r['step_ms']['p95']:.1f}"
