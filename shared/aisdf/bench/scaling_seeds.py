@@ -2,7 +2,7 @@
 
 One walk on wall time is a lottery: between default runs of the submaps on the same code
 the floor's error at the walk's end went 4.73-7.56 cm and the worst room's ratio
-1.01-1.20, as wide as the effects being compared. Each seed changes the furniture's
+1.01-1.44, as wide as the effects being compared. Each seed changes the furniture's
 jitter, the world frame, the walk, the depth noise and the training's draws; the rooms keep
 their names. With N seeds every run is kept under ``out/seed-<s>/`` and the top-level
 record holds, per method and scene, the mean of every figure over the seeds (a room's
@@ -18,6 +18,8 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
+
+from .scaling_walk import room_ratio
 
 if TYPE_CHECKING:
     from .scaling import ScalingConfig
@@ -51,8 +53,7 @@ def mean_runs(per_seed: list[dict]) -> dict:
             if all(s in r["runs"][m] for r in per_seed):
                 rec = mean_record([r["runs"][m][s] for r in per_seed])
                 for room in rec.get("rooms", {}).values():
-                    a, e = room.get("after_visit_cm"), room.get("end_cm")
-                    room["ratio_end"] = round(e / a, 3) if a and e is not None else None
+                    room["ratio_end"] = room_ratio(room)
                 out[m][s] = rec
     return out
 
@@ -66,9 +67,9 @@ def run_seeds(cfg: ScalingConfig) -> dict:
     seeds = [cfg.seed + i for i in range(cfg.seeds)]
     t0 = time.time()
     per_seed = []
-    for s in seeds:
+    for i, s in enumerate(seeds):
         if cfg.progress:
-            print(f"seed {s} ({seeds.index(s) + 1} of {len(seeds)})", flush=True)
+            print(f"seed {s} ({i + 1} of {len(seeds)})", flush=True)
         per_seed.append(run(cfg.model_copy(update={"seed": s, "seeds": 1, "out": str(out / f"seed-{s}")})))
     res: dict[str, Any] = {
         "config": cfg.model_dump(mode="json"), "scenes": per_seed[0]["scenes"], "methods": per_seed[0]["methods"],

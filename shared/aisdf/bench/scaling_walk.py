@@ -96,6 +96,12 @@ def _room_scorer(seq, frames: list[dict], room: str, cfg: ScalingConfig) -> _Sco
     return _Scorer(p, seq.gt_sdf(p)) if len(p) >= 20 else None
 
 
+def room_ratio(room: dict) -> float | None:
+    """A room's error at the end over its error just after its visit (None if either is missing or 0)."""
+    a, e = room.get("after_visit_cm"), room.get("end_cm")
+    return round(e / a, 3) if a and e is not None else None
+
+
 def _msg_bytes(msgs) -> int:
     return int(sum(len(k) + len(v) for k, v in msgs))
 
@@ -179,7 +185,7 @@ def walk(pipe, seq, frames: list[dict], stream_per_kf: float, cfg: ScalingConfig
     mem = rec["memory_end"]
     total = int(sum(mem.values()))
     for r in rooms.values():
-        r["ratio_end"] = round(r["end_cm"] / r["after_visit_cm"], 3) if r["after_visit_cm"] > 0 else None
+        r["ratio_end"] = room_ratio(r)
     rec.update({
         "keyframes": int(pipe.n_keyframes), "steps": int(pipe.steps),
         "step_ms": {"mean": round(float(np.mean(step_ms)), 2) if step_ms else None,
