@@ -5,8 +5,12 @@ The clients here are the stranger's client of ``stranger_client.py`` (written fr
 protocol.md alone) and the project's own demo."""
 
 import json
+import os
+import queue
+import signal
 import subprocess
 import sys
+import threading
 import time
 
 import msgpack
@@ -198,6 +202,59 @@ def test_demo_maps_the_synthetic_building(tmp_path):
     assert summary["history"][-1]["keyframes"] > 5 and summary["history"][-1]["steps"] > 50
     assert (tmp_path / "demo.rrd").stat().st_size > 10_000
     assert (tmp_path / "mesh.ply").exists()
+
+
+def _children(pid: int) -> list[int]:
+    """Processes whose parent is ``pid`` (Linux /proc)."""
+    out = []
+    for d in os.listdir("/proc"):
+        if d.isdigit():
+            try:
+                with open(f"/proc/{d}/stat") as f:
+                    stat = f.read()
+            except OSError:
+                continue
+            if int(stat[stat.rindex(")") + 2:].split()[1]) == pid:
+                out.append(int(d))
+    return out
+
+
+def _alive(pid: int) -> bool:
+    try:
+        with open(f"/proc/{pid}/stat") as f:
+            return f.read().split(")")[-1].split()[0] != "Z"
+    except OSError:
+        return False
+
+
+def test_demo_sigterm_stops_its_services_and_still_reports(tmp_path):
+    """SIGTERM (``timeout``, ``kill``, a supervisor) stops the demo as Ctrl-C does: its services,
+    which run in sessions of their own, are stopped, and the final evaluation is written."""
+    p = subprocess.Popen([sys.executable, "-m", "aisdf.cli", "demo", "--duration", "600", "--out", str(tmp_path)],
+                         stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    lines: queue.Queue = queue.Queue()
+    threading.Thread(target=lambda: [lines.put(x) for x in p.stdout], daemon=True).start()
+    seen, end, services = [], time.monotonic() + 240, []
+    try:
+        while not any("SDF error" in x for x in seen):  # a map is published and answered
+            assert time.monotonic() < end and p.poll() is None, "".join(seen)[-3000:]
+            try:
+                seen.append(lines.get(timeout=1.0))
+            except queue.Empty:
+                pass
+        services = _children(p.pid)
+        assert len(services) >= 3, services  # query, mapper, frontend (and the viewer)
+        p.send_signal(signal.SIGTERM)
+        assert p.wait(timeout=180) == 0
+        wait_for(lambda: not any(_alive(c) for c in services), 30, what="the services to stop")
+    finally:  # a failing run leaves nothing behind
+        if p.poll() is None:
+            p.kill()
+        for c in services:
+            if _alive(c):
+                os.kill(c, signal.SIGKILL)
+    summary = json.loads((tmp_path / "summary.json").read_text())
+    assert summary["history"][-1]["map_version"] > 0 and summary["sdf_error_cm"] < 50.0, summary
 
 
 def test_mapper_resumes_its_map_after_a_restart(tmp_path):

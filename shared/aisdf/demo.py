@@ -4,7 +4,9 @@ Starts frontend, mapper and query as separate processes, shows live progress (fr
 sent, keyframes, training steps, map version, SDF error against the synthetic ground
 truth), runs a small planner example, and writes a mesh and a summary at the end. The
 live viewer (``aisdf view --save``, a fourth process; needs the ``aisdf[viewer]`` extra)
-records the run as it goes. Ctrl-C stops everything cleanly.
+records the run as it goes. Ctrl-C or SIGTERM (``timeout``, ``kill``, a supervisor) stops
+everything cleanly: the services run in sessions of their own, so they would otherwise be
+left running; the final evaluation and mesh are written if a map had been published.
 """
 
 from __future__ import annotations
@@ -118,7 +120,7 @@ def run(duration: float = 180.0, out: str | Path = "runs/demo", building: str = 
     })
     viewer = None
     stop = threading.Event()
-    prev = signal.signal(signal.SIGINT, lambda *_: stop.set())
+    prev = {sig: signal.signal(sig, lambda *_: stop.set()) for sig in (signal.SIGINT, signal.SIGTERM)}
     rng = np.random.default_rng(seed)
     history, summary = [], {}
     t0 = time.monotonic()
@@ -132,10 +134,13 @@ def run(duration: float = 180.0, out: str | Path = "runs/demo", building: str = 
             viewer = start_viewer(stack, viewer_port, recording, out / "logs", mesh_period_s, mesh_resolution)
         with SdfClient(ns, zenoh=stack.client_zenoh, timeout=30.0) as client:
             session = client._session
-            wait_for(lambda: transport.get_latest(session, keys.key(ns, "info/mapper"), 1.0), 60, what="the mapper")
+            wait_for(lambda: stop.is_set() or transport.get_latest(session, keys.key(ns, "info/mapper"), 1.0), 60,
+                     what="the mapper")
             if viewer is not None:
-                wait_for(lambda: viewer.poll() is not None or viewer_up(session, ns), 60, what="the viewer")
-            stack.start(["frontend"])
+                wait_for(lambda: stop.is_set() or viewer.poll() is not None or viewer_up(session, ns), 60,
+                         what="the viewer")
+            if not stop.is_set():
+                stack.start(["frontend"])
             t0 = time.monotonic()
             last_eval = 0.0
             while not stop.is_set() and time.monotonic() - t0 < duration:
@@ -173,9 +178,13 @@ def run(duration: float = 180.0, out: str | Path = "runs/demo", building: str = 
             # The recording covers the live run; the final evaluation and mesh do not wait behind its meshes.
             if stop_viewer(viewer) not in (None, 0):
                 log.warning("the viewer exited with %s; see %s", viewer.returncode, out / "logs" / "viewer.log")
-            summary = finish(client, seq, out, recording, rng, history, time.monotonic() - t0, quiet)
+            if any(h["map_version"] for h in history):
+                summary = finish(client, seq, out, recording, rng, history, time.monotonic() - t0, quiet)
+            elif not quiet:
+                print("stopped before the mapper published a map: no evaluation")
     finally:
-        signal.signal(signal.SIGINT, prev)
+        for sig, handler in prev.items():
+            signal.signal(sig, handler)
         stop_viewer(viewer)
         stack.stop()
     if summary and not quiet:
