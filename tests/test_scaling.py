@@ -29,6 +29,7 @@ def test_quick_scaling_table(result):
     assert saved["criteria"] == res["criteria"]
     md = (out / "scaling.md").read_text()
     assert "| step time mean / p95 (ms) |" in md and "room7" in md and "implicit answer" in md
+    assert "| answers > 5 cm above the truth (fused), end of the walk / +2 s (% of points) |" in md
     assert cfg.source == "fused"  # the criteria judge query/sdf's default answer
     n, P = cfg.keyframes, cfg.period_s
     for m in methods:
@@ -50,6 +51,10 @@ def test_quick_scaling_table(result):
                 by = r[f"error_{k}_by_source_cm"]  # the default answer (judged) and the network alone, both kept
                 assert set(by) == {"fused", "implicit"} and by[cfg.source] == r[f"error_{k}_cm"]
                 assert all(math.isfinite(v) and 0 < v < 200 for v in by.values())
+                high = r[f"too_high_{k}_by_source_pct"]  # answers > 5 cm above the exact SDF, % of points
+                assert set(high) == {"fused", "implicit"} and high[cfg.source] == r[f"too_high_{k}_pct"]
+                assert all(0 <= v <= 100 for v in high.values())
+                assert high["fused"] <= high["implicit"]  # the fusion only ever lowers an answer
             assert r["steps_end"] >= r["steps_walk_end"] and r["t_end"] >= r["t_walk_end"] >= n * P
             assert 0 <= r["keyframe_late_s"]["mean"] <= r["keyframe_late_s"]["max"]
         floor = res["runs"][m]["floor"]
@@ -64,6 +69,27 @@ def test_quick_scaling_table(result):
     assert res["runs"]["single"]["floor"]["bytes_ratio"] == 1.0  # one network: all of it, every period
     info = res["scene_info"]["floor"]
     assert len(info["visits"]) == 7 and info["stream_s_per_keyframe"] > 10  # spread over the whole walk
+
+
+def test_the_scorer_counts_answers_too_high_exactly():
+    import numpy as np
+
+    from aisdf.bench.scaling_walk import TOO_HIGH_M, _Scorer
+
+    gt = np.linspace(0.0, 1.0, 200)
+    offsets = np.zeros(200)
+    offsets[:30] = TOO_HIGH_M + 0.01  # 15 % too high by more than 5 cm
+    offsets[30:50] = TOO_HIGH_M - 0.01  # too high, but within 5 cm
+    offsets[50:90] = -0.2  # too low: conservative, not counted
+
+    class Pipe:  # no surfel map: the fused answer is the network's
+        def sdf(self, points):
+            return (gt + offsets).astype(np.float32)
+
+    mae, high = _Scorer(np.zeros((200, 3)), gt).evaluate(Pipe())
+    assert high == {"implicit": 15.0, "fused": 15.0}
+    expected = 100 * (30 * (TOO_HIGH_M + 0.01) + 20 * (TOO_HIGH_M - 0.01) + 40 * 0.2) / 200
+    assert mae["fused"] == pytest.approx(expected, abs=1e-3)
 
 
 def test_training_overrides_from_the_command_line_merge_over_the_profile():

@@ -24,7 +24,9 @@ points; the ratio end / after-visit says whether it was forgotten).
 Measured: per-step wall time (mean, p95), mapper memory (``pipe.memory()``: bytes held by
 keyframes, models with their optimiser state, observed space; per keyframe), bytes
 published per second while walking (changed only, and republishing everything), the
-errors above, and the issue's criteria evaluated per method. ``run`` writes
+errors above, the share of the whole map's points where the answer is more than 5 cm above
+the exact SDF (``TOO_HIGH_M``: the side on which a planner would cut a corner; a mean error
+hides it), and the issue's criteria evaluated per method. ``run`` writes
 ``scaling.json`` and ``scaling.md`` under ``out``; ``--seeds N`` walks every scene N times
 (seeds seed .. seed + N - 1) and judges the mean (``scaling_seeds.py``); ``--quick`` is a
 tiny walk (a dozen keyframes a quarter second apart, spread over the whole floor) for CI.
@@ -45,7 +47,7 @@ import numpy as np
 from pydantic import Field
 
 from ..config import Model, deep_merge
-from .scaling_walk import scene_frames, walk, whole_scorer
+from .scaling_walk import TOO_HIGH_M, scene_frames, walk, whole_scorer
 
 log = logging.getLogger("aisdf.bench.scaling")
 
@@ -188,6 +190,9 @@ def report(res: dict) -> str:
         (f"SDF error ({src}), +{cfg['tail_s']:g} s (cm)", lambda r: f"{r['error_end_cm']:.2f}"),
         (f"  {other} answer: end of the walk / +{cfg['tail_s']:g} s (cm)",
          lambda r: f"{r['error_walk_end_by_source_cm'][other]:.2f} / {r['error_end_by_source_cm'][other]:.2f}"),
+        (f"answers > {100 * TOO_HIGH_M:g} cm above the truth ({src}), end of the walk / +{cfg['tail_s']:g} s "
+         "(% of points)", lambda r: f"{r['too_high_walk_end_pct']:.1f} / {r['too_high_end_pct']:.1f}"
+         if "too_high_end_pct" in r else "-"),
     ]
     for label, fn in rows:
         cells = []

@@ -57,21 +57,35 @@ def frame_of(f: dict):
     return Frame(int(f["frame_id"]), float(f["stamp"]), f["depth"], f["K"], f["T_WC"])
 
 
+TOO_HIGH_M = 0.05  # an answer this far above the exact SDF promises a planner room that is not there
+
+
 class _Scorer:
     """Fixed evaluation points with their exact SDF. ``scores(pipe)`` -> mean |error| in cm of
     the network alone (``implicit``) and of the default answer of ``query/sdf`` (``fused``: the
-    network and the surfel map, ``aisdf.structure.fusion``); ``score(pipe, source)`` one of them."""
+    network and the surfel map, ``aisdf.structure.fusion``); ``score(pipe, source)`` one of them.
+    ``evaluate(pipe)`` -> those means and, per answer, the share of points (%) where it is
+    more than ``TOO_HIGH_M`` above the exact SDF (the unsafe side for a planner)."""
 
     def __init__(self, points: np.ndarray, gt: np.ndarray):
         self.points, self.gt = points, gt
 
-    def scores(self, pipe) -> dict[str, float]:
+    def _answers(self, pipe) -> dict[str, np.ndarray]:
         from ..structure.fusion import fused_sdf
 
         f = np.asarray(pipe.sdf(self.points), dtype=np.float64)
         s = pipe.surfels() if hasattr(pipe, "surfels") else None
-        out = {"implicit": f, "fused": fused_sdf(self.points, f, None, s)[0]}
-        return {k: round(100.0 * float(np.mean(np.abs(v - self.gt))), 3) for k, v in out.items()}
+        return {"implicit": f, "fused": np.asarray(fused_sdf(self.points, f, None, s)[0], dtype=np.float64)}
+
+    def evaluate(self, pipe) -> tuple[dict[str, float], dict[str, float]]:
+        """(mean |error| in cm, % of points more than TOO_HIGH_M above the truth), per answer."""
+        ans = self._answers(pipe)
+        mae = {k: round(100.0 * float(np.mean(np.abs(v - self.gt))), 3) for k, v in ans.items()}
+        high = {k: round(100.0 * float(np.mean(v - self.gt > TOO_HIGH_M)), 3) for k, v in ans.items()}
+        return mae, high
+
+    def scores(self, pipe) -> dict[str, float]:
+        return self.evaluate(pipe)[0]
 
     def score(self, pipe, source: str = "fused") -> float:
         return self.scores(pipe)[source]
@@ -162,9 +176,11 @@ def walk(pipe, seq, frames: list[dict], stream_per_kf: float, cfg: ScalingConfig
                             f"({len(vis)} keyframes, t = {when:.0f} s)")
                 else:
                     key = "walk_end" if kind == "walk_end" else "end"
-                    both = whole.scores(pipe)
+                    both, high = whole.evaluate(pipe)
                     rec[f"error_{key}_cm"] = both[cfg.source]
                     rec[f"error_{key}_by_source_cm"] = both
+                    rec[f"too_high_{key}_pct"] = high[cfg.source]
+                    rec[f"too_high_{key}_by_source_pct"] = high
                     rec[f"memory_{key}"] = {k: int(v) for k, v in pipe.memory().items()}
                     rec[f"steps_{key}"] = int(pipe.steps)
                     rec[f"t_{key}"] = round(t, 2)  # when it was scored (later than planned on a busy machine)
