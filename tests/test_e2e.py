@@ -257,6 +257,31 @@ def test_demo_sigterm_stops_its_services_and_still_reports(tmp_path):
     assert summary["history"][-1]["map_version"] > 0 and summary["sdf_error_cm"] < 50.0, summary
 
 
+def test_demo_stopped_before_any_map_stops_its_services_and_writes_nothing(tmp_path):
+    """SIGTERM while the demo is still starting its services (before the mapper answers, so
+    before any map): it exits 0, says there was no map to evaluate, writes no summary, and
+    leaves no service running."""
+    p = subprocess.Popen([sys.executable, "-m", "aisdf.cli", "demo", "--duration", "600", "--out", str(tmp_path)],
+                         stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    services: list[int] = []
+    try:
+        # query and mapper are started first; the front end only once the mapper answers
+        services = wait_for(lambda: (lambda c: c if len(c) >= 2 else None)(_children(p.pid)), 60,
+                            what="the demo's first services")
+        p.send_signal(signal.SIGTERM)
+        out, _ = p.communicate(timeout=180)
+        assert p.returncode == 0, out[-3000:]
+        wait_for(lambda: not any(_alive(c) for c in services), 30, what="the services to stop")
+    finally:
+        if p.poll() is None:
+            p.kill()
+        for c in services:
+            if _alive(c):
+                os.kill(c, signal.SIGKILL)
+    assert "stopped before the mapper published a map: no evaluation" in out, out[-3000:]
+    assert "SDF error" not in out and not (tmp_path / "summary.json").exists()
+
+
 def test_mapper_resumes_its_map_after_a_restart(tmp_path):
     room = sc.BoxRoom()
     poses = room.poses(24)[::4]
