@@ -53,9 +53,10 @@ class SubmapConfig(Model):
 
     cell_m: float = Field(6.0, gt=0, description="horizontal size of a submap's cell (m). Larger cells: fewer "
                           "submaps, more steps each, but a larger share of the map changes each period. aisdf bench "
-                          "scaling, seeds 0-2, +60 s: 8 m gave the floor 3.83 cm and the office 1.28 (6 m: 4.18, "
-                          "1.71) but published 0.315 of republishing everything (one seed 0.34, over the issue's "
-                          "1/3; 6 m: 0.29); 10 m (seeds 0-1) 0.37 (README, Scaling)")
+                          "scaling, seeds 0-2, +60 s: 8 m gave the floor 3.83 cm and the office 1.28 (6 m the same "
+                          "days: 4.02, 1.41), within one walk's noise, but published 0.315 of republishing "
+                          "everything (one seed 0.34, over the issue's 1/3; 6 m: 0.29); 10 m (seeds 0-1) 0.37 "
+                          "(README, Scaling)")
     cell_height_m: float = Field(6.0, gt=0, description="vertical size of a cell (m): one storey fits one layer")
     overlap_m: float = Field(0.5, gt=0, description="each submap reaches this far into its neighbours; answers "
                           "blend over twice this width")
