@@ -30,6 +30,7 @@ def test_quick_scaling_table(result):
     md = (out / "scaling.md").read_text()
     assert "| step time mean / p95 (ms) |" in md and "room7" in md and "implicit answer" in md
     assert "| answers > 5 cm above the truth (fused), end of the walk / +2 s (% of points) |" in md
+    assert "| fused with the measured surface (not served yet): error, end of the walk / +2 s (cm) |" in md
     assert cfg.source == "fused"  # the criteria judge query/sdf's default answer
     n, P = cfg.keyframes, cfg.period_s
     for m in methods:
@@ -48,13 +49,16 @@ def test_quick_scaling_table(result):
             assert r["memory_bytes"] == sum(mem.values()) and r["memory_per_keyframe"] == r["memory_bytes"] // n
             for k in ("walk_end", "end"):
                 assert math.isfinite(r[f"error_{k}_cm"]) and 0 < r[f"error_{k}_cm"] < 200
-                by = r[f"error_{k}_by_source_cm"]  # the default answer (judged) and the network alone, both kept
-                assert set(by) == {"fused", "implicit"} and by[cfg.source] == r[f"error_{k}_cm"]
+                by = r[f"error_{k}_by_source_cm"]  # the default answer (judged), the network alone, and
+                # the fused answer with the measured surface (structure.measured, not served yet)
+                assert set(by) == {"fused", "implicit", "measured"} and by[cfg.source] == r[f"error_{k}_cm"]
                 assert all(math.isfinite(v) and 0 < v < 200 for v in by.values())
                 high = r[f"too_high_{k}_by_source_pct"]  # answers > 5 cm above the exact SDF, % of points
-                assert set(high) == {"fused", "implicit"} and high[cfg.source] == r[f"too_high_{k}_pct"]
+                assert set(high) == set(by) and high[cfg.source] == r[f"too_high_{k}_pct"]
                 assert all(0 <= v <= 100 for v in high.values())
                 assert high["fused"] <= high["implicit"]  # the fusion only ever lowers an answer
+            ms = r["measured_surface"]  # every keyframe's pixels pooled: some surface, timed
+            assert ms["voxels"] > 0 and ms["bytes"] > 0 and ms["add_ms_mean"] > 0
             assert r["steps_end"] >= r["steps_walk_end"] and r["t_end"] >= r["t_walk_end"] >= n * P
             assert 0 <= r["keyframe_late_s"]["mean"] <= r["keyframe_late_s"]["max"]
         floor = res["runs"][m]["floor"]
@@ -88,6 +92,11 @@ def test_the_scorer_counts_answers_too_high_exactly():
 
     mae, high = _Scorer(np.zeros((200, 3)), gt).evaluate(Pipe())
     assert high == {"implicit": 15.0, "fused": 15.0}
+    from aisdf.structure.measured import MeasuredSurface
+
+    # No surfel map and no measured point: the measured answer is the fused one.
+    mae2, high2 = _Scorer(np.zeros((200, 3)), gt).evaluate(Pipe(), MeasuredSurface())
+    assert high2 == {"implicit": 15.0, "fused": 15.0, "measured": 15.0} and mae2["measured"] == mae2["fused"]
     expected = 100 * (30 * (TOO_HIGH_M + 0.01) + 20 * (TOO_HIGH_M - 0.01) + 40 * 0.2) / 200
     assert mae["fused"] == pytest.approx(expected, abs=1e-3)
 

@@ -193,6 +193,13 @@ def report(res: dict) -> str:
         (f"answers > {100 * TOO_HIGH_M:g} cm above the truth ({src}), end of the walk / +{cfg['tail_s']:g} s "
          "(% of points)", lambda r: f"{r['too_high_walk_end_pct']:.1f} / {r['too_high_end_pct']:.1f}"
          if "too_high_end_pct" in r else "-"),
+        (f"fused with the measured surface (not served yet): error, end of the walk / +{cfg['tail_s']:g} s (cm)",
+         lambda r: f"{r['error_walk_end_by_source_cm']['measured']:.2f} / {r['error_end_by_source_cm']['measured']:.2f}"
+         if "measured" in r.get("error_end_by_source_cm", {}) else "-"),
+        (f"  ... answers > {100 * TOO_HIGH_M:g} cm above the truth, end of the walk / +{cfg['tail_s']:g} s (%)",
+         lambda r: f"{r['too_high_walk_end_by_source_pct']['measured']:.1f} / "
+         f"{r['too_high_end_by_source_pct']['measured']:.1f}"
+         if "measured" in r.get("too_high_end_by_source_pct", {}) else "-"),
     ]
     for label, fn in rows:
         cells = []

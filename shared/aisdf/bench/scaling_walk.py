@@ -13,6 +13,8 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from ..structure.measured import MeasuredSurface
+
 if TYPE_CHECKING:
     from .scaling import ScalingConfig
 
@@ -70,16 +72,24 @@ class _Scorer:
     def __init__(self, points: np.ndarray, gt: np.ndarray):
         self.points, self.gt = points, gt
 
-    def _answers(self, pipe) -> dict[str, np.ndarray]:
+    def _answers(self, pipe, measured=None) -> dict[str, np.ndarray]:
         from ..structure.fusion import fused_sdf
 
         f = np.asarray(pipe.sdf(self.points), dtype=np.float64)
         s = pipe.surfels() if hasattr(pipe, "surfels") else None
-        return {"implicit": f, "fused": np.asarray(fused_sdf(self.points, f, None, s)[0], dtype=np.float64)}
+        out = {"implicit": f, "fused": np.asarray(fused_sdf(self.points, f, None, s)[0], dtype=np.float64)}
+        if measured is not None:
+            from ..structure.measured import measured_fuse
+            from ..structure.surfel_map import explicit_sdf
 
-    def evaluate(self, pipe) -> tuple[dict[str, float], dict[str, float]]:
-        """(mean |error| in cm, % of points more than TOO_HIGH_M above the truth), per answer."""
-        ans = self._answers(pipe)
+            d_e = explicit_sdf(self.points, s)[0] if s is not None and len(s) else np.full(len(f), np.inf)
+            out["measured"] = measured_fuse(out["fused"], f, d_e, measured.distance(self.points))
+        return out
+
+    def evaluate(self, pipe, measured=None) -> tuple[dict[str, float], dict[str, float]]:
+        """(mean |error| in cm, % of points more than TOO_HIGH_M above the truth), per answer;
+        with a ``MeasuredSurface`` also the answer ``measured`` (``structure.measured``)."""
+        ans = self._answers(pipe, measured)
         mae = {k: round(100.0 * float(np.mean(np.abs(v - self.gt))), 3) for k, v in ans.items()}
         high = {k: round(100.0 * float(np.mean(v - self.gt > TOO_HIGH_M)), 3) for k, v in ans.items()}
         return mae, high
@@ -138,6 +148,8 @@ def walk(pipe, seq, frames: list[dict], stream_per_kf: float, cfg: ScalingConfig
     scorers: dict[str, _Scorer] = {}
     rec: dict[str, Any] = {"rejected": 0}
     late: list[float] = []  # how long after its time each keyframe was added (a busy mapper is late)
+    max_depth = (pipe.cfg if hasattr(pipe, "cfg") else pipe.trainer.cfg).max_depth
+    measured, measured_ms = MeasuredSurface(max_depth=max_depth), []
     clock = _Clock()
     next_kf, next_period, version = 0, P, 1
     while True:
@@ -149,6 +161,12 @@ def walk(pipe, seq, frames: list[dict], stream_per_kf: float, cfg: ScalingConfig
             except ValueError as e:
                 rec["rejected"] += 1
                 log.info("keyframe %d rejected: %s", next_kf, e)
+            else:  # the scorer's measured surface: its time is reported, not taken from training
+                with clock.pause():
+                    s = time.perf_counter()
+                    f = frames[next_kf]
+                    measured.add(f["depth"], f["K"], f["T_WC"])
+                    measured_ms.append(1e3 * (time.perf_counter() - s))
             next_kf += 1
             continue
         if t >= next_period:
@@ -176,7 +194,7 @@ def walk(pipe, seq, frames: list[dict], stream_per_kf: float, cfg: ScalingConfig
                             f"({len(vis)} keyframes, t = {when:.0f} s)")
                 else:
                     key = "walk_end" if kind == "walk_end" else "end"
-                    both, high = whole.evaluate(pipe)
+                    both, high = whole.evaluate(pipe, measured)
                     rec[f"error_{key}_cm"] = both[cfg.source]
                     rec[f"error_{key}_by_source_cm"] = both
                     rec[f"too_high_{key}_pct"] = high[cfg.source]
@@ -214,6 +232,8 @@ def walk(pipe, seq, frames: list[dict], stream_per_kf: float, cfg: ScalingConfig
         "bytes_per_s_tail": round(sum(p["bytes"] for p in periods if not p["walking"])
                                   / max(1, len(periods) - len(walking)) / P, 1),
         "rooms": rooms, "periods": periods,
+        "measured_surface": {"voxels": len(measured), "bytes": measured.nbytes(),
+                             "add_ms_mean": round(float(np.mean(measured_ms)), 2) if measured_ms else None},
     })
     rec["bytes_ratio"] = round(rec["bytes_per_s"] / rec["bytes_per_s_all"], 4) if rec["bytes_per_s_all"] else None
     return rec

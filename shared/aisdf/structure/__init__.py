@@ -9,6 +9,8 @@
 6. ``surfel_map``: the global planar map: surfels merged across keyframes, realigned
    when the Atlanta frame moves (beyond the paper).
 7. ``fusion``: answers from the network and the surfel map together (Sec. IV-D).
+8. ``measured``: the keyframes' depth pixels pooled into voxels, and an answer that also
+   uses them (beyond the paper; scored by ``aisdf bench scaling``, not served yet).
 
 ``surfel_types`` (the ``Surfels`` arrays) and ``surfel_config`` hold the shared data and
 settings; ``process.Structure`` runs stages 1-6 for each keyframe (the mapper's pipeline
