@@ -73,16 +73,16 @@ class _Scorer:
         self.points, self.gt = points, gt
 
     def _answers(self, pipe, measured=None) -> dict[str, np.ndarray]:
-        from ..structure.fusion import fused_sdf
+        from ..structure.fusion import fuse
+        from ..structure.measured import measured_fuse
+        from ..structure.surfel_map import explicit_sdf
 
         f = np.asarray(pipe.sdf(self.points), dtype=np.float64)
         s = pipe.surfels() if hasattr(pipe, "surfels") else None
-        out = {"implicit": f, "fused": np.asarray(fused_sdf(self.points, f, None, s)[0], dtype=np.float64)}
+        # fusion.fused_sdf, with the surfel distance kept for the measured answer
+        d_e = explicit_sdf(self.points, s)[0] if s is not None and len(s) else np.full(len(f), np.inf)
+        out = {"implicit": f, "fused": np.asarray(fuse(f, None, d_e, None)[0], dtype=np.float64)}
         if measured is not None:
-            from ..structure.measured import measured_fuse
-            from ..structure.surfel_map import explicit_sdf
-
-            d_e = explicit_sdf(self.points, s)[0] if s is not None and len(s) else np.full(len(f), np.inf)
             out["measured"] = measured_fuse(out["fused"], f, d_e, measured.distance(self.points))
         return out
 

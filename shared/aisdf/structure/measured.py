@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..geometry import backproject, transform
 from ..observed import pack_keys
 
 DEFAULT_VOXEL = 0.1
@@ -58,29 +59,22 @@ class MeasuredSurface:
         K, T = np.asarray(K, np.float64), np.asarray(T_WC, np.float64)
         if K.shape != (3, 3) or T.shape != (4, 4) or not (np.all(np.isfinite(K)) and np.all(np.isfinite(T))):
             raise ValueError("K must be a finite 3x3 and T_WC a finite 4x4 matrix")
-        v, u = np.nonzero(np.isfinite(depth) & (depth > 0) & (depth <= self.max_depth))
-        if not len(v):
+        valid = np.isfinite(depth) & (depth > 0) & (depth <= self.max_depth)
+        n = int(valid.sum())
+        if not n:
             return 0
-        z = depth[v, u]
-        P = np.stack([(u - K[0, 2]) / K[0, 0] * z, (v - K[1, 2]) / K[1, 1] * z, z], axis=-1)
-        P = P @ T[:3, :3].T + T[:3, 3]
+        P = transform(T, backproject(depth, K)[valid])
         k = pack_keys(np.floor(P / self.voxel).astype(np.int64))
-        new, inv, cnt = np.unique(k, return_inverse=True, return_counts=True)
-        inv = inv.ravel()
-        sums = np.stack([np.bincount(inv, P[:, i], minlength=len(new)) for i in range(3)], axis=1)
-        keys = np.concatenate([self.keys, new])
-        order = np.argsort(keys, kind="stable")
-        keys = keys[order]
-        all_sums = np.concatenate([self.sums, sums])[order]
-        all_counts = np.concatenate([self.counts, cnt])[order]
-        first = np.r_[True, keys[1:] != keys[:-1]]
-        group = np.cumsum(first) - 1
-        self.keys = keys[first]
-        self.sums = np.zeros((len(self.keys), 3))
-        np.add.at(self.sums, group, all_sums)
-        self.counts = np.bincount(group, all_counts, minlength=len(self.keys)).astype(np.int64)
+        # Merge into the held voxels: one unique over held and new keys, sums and counts by group.
+        keys, group = np.unique(np.concatenate([self.keys, k]), return_inverse=True)
+        group = group.ravel()
+        sums = np.concatenate([self.sums, P])
+        self.sums = np.stack([np.bincount(group, sums[:, i], minlength=len(keys)) for i in range(3)], axis=1)
+        self.counts = np.bincount(group, np.concatenate([self.counts, np.ones(n, np.int64)]).astype(np.float64),
+                                  minlength=len(keys)).astype(np.int64)
+        self.keys = keys
         self._tree = None
-        return len(v)
+        return n
 
     def points(self) -> np.ndarray:
         """(M, 3) the mean point of each voxel with at least ``min_hits`` pixels."""
