@@ -79,6 +79,27 @@ def test_weight_snapshot_roundtrip():
     np.testing.assert_array_equal(b.state["layers.0.weight"], st["layers.0.weight"])
 
 
+def test_weight_snapshot_measured_points_1_4():
+    """1.4: a snapshot may carry the measured points of its space; a 1.3 snapshot (without
+    them) decodes as before, and a message built by hand from the README decodes."""
+    st = {"w": np.ones(2, np.float32)}
+    pts = np.array([[0.0, 1.0, 2.0], [3.5, -1.0, 0.25]], np.float32)
+    s = P.WeightSnapshot(5, 10, 1.0, {"arch": "isdf"}, st, measured={"voxel": 0.1, "points": pts})
+    b = P.WeightSnapshot.from_msg(roundtrip(s.to_msg()))
+    assert b.measured["voxel"] == 0.1 and b.measured["points"].dtype == np.float32
+    np.testing.assert_array_equal(b.measured["points"], pts)
+    assert P.WeightSnapshot.from_msg(roundtrip(P.WeightSnapshot(5, 10, 1.0, {}, st).to_msg())).measured is None
+    hand = {"v": 1, "version": 1, "step": 0, "stamp": 0.0, "model": {}, "state": {},
+            "measured": {"voxel": 0.1, "points": arr(pts, "<f4")}}
+    np.testing.assert_array_equal(P.WeightSnapshot.from_msg(roundtrip(hand)).measured["points"], pts)
+    for m, match in (({"voxel": 0.0, "points": arr(pts, "<f4")}, "positive"),
+                     ({"voxel": 0.1, "points": arr(pts[:, :2], "<f4")}, "measured.points"),
+                     ({"voxel": 0.1, "points": arr(pts, "<f8")}, "measured.points"),
+                     ({"voxel": 0.1, "points": arr([[0, np.nan, 0]], "<f4")}, "non-finite"),
+                     ({"points": arr(pts, "<f4")}, "voxel"), ([1, 2], "measured")):
+        bad({**hand, "measured": m}, P.WeightSnapshot, match=match)
+
+
 def test_surfel_map_roundtrip():
     n = 3
     rng = np.random.default_rng(1)

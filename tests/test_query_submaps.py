@@ -68,12 +68,13 @@ def crop(obs: ObservedGrid, grid: SubmapGrid, cell) -> ObservedGrid:
     return ObservedGrid(obs.origin + lo * obs.voxel, obs.voxel, occ)
 
 
-def snapshot(net, grid, cell, version, observed, epoch=EPOCH, step=100):
+def snapshot(net, grid, cell, version, observed, epoch=EPOCH, step=100, measured=None):
     spec = model_spec(net)
     lo, hi = observed.bounds
     spec["bounds"] = [lo.tolist(), hi.tolist()]
     snap = protocol.WeightSnapshot(version, step, time.time(), spec, state_to_numpy(net), epoch, observed.to_msg(),
-                                   {"id": cell_id(cell), "grid": grid.to_msg()})
+                                   {"id": cell_id(cell), "grid": grid.to_msg()},
+                                   None if measured is None else {"voxel": 0.1, "points": measured})
     return protocol.WeightSnapshot.from_msg(protocol.unpack(protocol.pack(snap.to_msg())))  # as received
 
 
@@ -376,6 +377,77 @@ def test_submap_ordering_epochs_and_bad_snapshots(submap_map):
     assert rep.map_version == 7
 
 
+def test_measured_points_1_4_answers_bake_and_the_1_3_answer(submap_map):
+    """Protocol 1.4: submaps carrying measured points. ``fused`` answers are the rule of
+    ``structure.measured`` over the union of the submaps' points (value and gradient), closer
+    to the truth than the 1.3 answer; snapshots without points (a 1.3 mapper), or the query
+    service's ``measured`` off, give the 1.3 answer; the bake equals the exact answer within
+    its accuracy, and a re-bake after one submap's points changed re-evaluates only near
+    them and equals a full bake."""
+    from aisdf.structure.measured import MeasuredPoints, MeasuredSurface, measured_fuse_grad
+
+    m = submap_map
+    grid = m["grid"]
+    ms = MeasuredSurface()
+    for f in m["frames"]:
+        ms.add(f["depth"], f["K"], f["T_WC"])
+    allp = ms.points().astype(np.float32)
+    own = {c: allp[grid.inside(c, allp)] for c in CELLS}
+    snaps = {c: snapshot(m["nets"][c], grid, c, 1, m["observed"][c], measured=own[c]) for c in CELLS}
+    e = QueryEngine(device="cpu")
+    off = QueryEngine(device="cpu", measured=False)
+    for c in CELLS:
+        assert e.set_submap(snaps[c]) and off.set_submap(snaps[c])
+    old = engine_of(m)  # 1.3 snapshots
+    assert len(e.state.measured) == sum(len(v) for v in own.values()) > 1000 and old.state.measured is None
+    pts = band_points(m, 4000, np.random.default_rng(5))
+    f_ref, g_ref, _ = blend(grid, evaluators(m), pts, True)
+    want_f, want_g = measured_fuse_grad(f_ref, g_ref, f_ref, np.full(len(pts), np.inf), None,
+                                        *MeasuredPoints(np.concatenate(list(own.values()))).nearest(pts))
+    rep = e.answer_sdf(protocol.SdfRequest(pts, gradient=True, exact=True))
+    np.testing.assert_allclose(rep.sdf, want_f, atol=2e-5)
+    np.testing.assert_allclose(rep.gradient, want_g, atol=2e-4)
+    for eng in (old, off):  # the 1.3 answer: no surfels here, so the blend itself
+        r13 = eng.answer_sdf(protocol.SdfRequest(pts, gradient=True, exact=True))
+        np.testing.assert_allclose(r13.sdf, f_ref, atol=2e-5)
+        np.testing.assert_allclose(r13.gradient, g_ref, atol=2e-4)
+    gt = m["seq"].gt_sdf(pts)
+    err, err13 = np.abs(rep.sdf - gt).mean(), np.abs(r13.sdf - gt).mean()
+    capped = rep.sdf < r13.sdf - 1e-4
+    print(f"1.4 answer {100 * err:.2f} cm, 1.3 answer {100 * err13:.2f} cm; capped at {100 * capped.mean():.1f} % "
+          f"of the points: {100 * np.abs(rep.sdf - gt)[capped].mean():.2f} against "
+          f"{100 * np.abs(r13.sdf - gt)[capped].mean():.2f} cm there")
+    assert capped.mean() > 0.01 and err < err13
+    # Baked: within the bake's accuracy of the exact answer.
+    first = e.bake_now().field
+    bk = e.answer_sdf(protocol.SdfRequest(pts, gradient=True))
+    assert bk.baked
+    diff = np.abs(bk.sdf - want_f)
+    assert diff.mean() < 0.005 and np.percentile(diff, 99) < 0.03, (diff.mean(), np.percentile(diff, 99))
+    # One submap's points change (a new version, same weights): an object measured in the
+    # open, in its overlap with a neighbour, where it lowers answers of the neighbour's space
+    # too. Only what lies within the fusion radius of the moved points is re-evaluated.
+    c = (1, -1, 0)
+    cand = m["centres"][grid.inside(c, m["centres"], grow=0.3) & (grid.weight((1, 0, 0), m["centres"]) > 0)]
+    far = cand[np.argmax(MeasuredPoints(allp).nearest(cand)[0])]
+    box = (far + np.random.default_rng(2).uniform(-0.1, 0.1, (40, 3))).astype(np.float32)
+    assert grid.inside(c, box).all()
+    snap2 = snapshot(m["nets"][c], grid, c, 2, m["observed"][c], measured=np.concatenate([own[c], box]))
+    assert e.set_submap(snap2)
+    second = e.bake_now().field
+    assert 0 < second.stats["evaluations"] < first.stats["evaluations"] and second.stats["reused"] > 0, second.stats
+    ref = QueryEngine(device="cpu")
+    for cc in CELLS:
+        assert ref.set_submap(snap2 if cc == c else snaps[cc])
+    full = ref.bake_now().field
+    q = band_points(m, 20_000, np.random.default_rng(6))
+    fa, ga, ca = second.query(q)
+    fb, gb, cb = full.query(q)
+    np.testing.assert_array_equal(ca, cb)
+    np.testing.assert_allclose(fa, fb, atol=1e-6)
+    np.testing.assert_allclose(ga, gb, atol=1e-5)
+
+
 # ----------------------------------------------------------------------------- meshes
 
 
@@ -574,8 +646,15 @@ def test_e2e_real_submap_mapper_answers_planners(tmp_path):
     ns = NS + "/real"
     mapper = ["--preset", "cpu", "--submaps", "--set", "training.network.width=32", "--set", "submap.cell_m=3"]
     frontend = ["--set", "n_frames=200", "--set", "width=80", "--set", "height=60", "--set", "linger=true", "--fast"]
-    heard: dict = {"submaps": {}, "index": None}
+    heard: dict = {"submaps": {}, "index": None, "surfels": None}
     lock = threading.Lock()
+
+    def on_surfels(sample):
+        smap = protocol.SurfelMap.from_msg(protocol.unpack(sample.payload.to_bytes()))
+        with lock:
+            old = heard["surfels"]
+            if old is None or (smap.epoch, smap.version) > (old.epoch, old.version):
+                heard["surfels"] = smap
 
     def on_submap(sample):
         snap = protocol.WeightSnapshot.from_msg(protocol.unpack(sample.payload.to_bytes()))
@@ -599,7 +678,8 @@ def test_e2e_real_submap_mapper_answers_planners(tmp_path):
         s = sc.open_session(st.endpoints)
         try:
             subs = [s.declare_subscriber(f"{ns}/map/submaps/*", on_submap),
-                    s.declare_subscriber(f"{ns}/map/index", on_index)]
+                    s.declare_subscriber(f"{ns}/map/index", on_index),
+                    s.declare_subscriber(f"{ns}/map/surfels", on_surfels)]
 
             def fe_done():
                 status, msg = sc.request(s, f"{ns}/info/frontend", {"v": 1}, 2.0)
@@ -614,8 +694,9 @@ def test_e2e_real_submap_mapper_answers_planners(tmp_path):
             assert st.stop_one("mapper") == 0  # the map stops changing: its last messages stand
             time.sleep(2.0)
             with lock:
-                idx, snaps = heard["index"], dict(heard["submaps"])
+                idx, snaps, surfels = heard["index"], dict(heard["submaps"]), heard["surfels"]
             assert idx is not None and len(idx.submaps) >= 2, idx
+            assert surfels is not None
             assert set(snaps) == set(idx.submaps)
             wait_for(lambda: (lambda i: i.get("submaps") == len(idx.submaps) and i.get("version") == idx.version
                               and i.get("baked_version") == idx.version)(qinfo(s)), 120, period=1.0,
@@ -624,6 +705,7 @@ def test_e2e_real_submap_mapper_answers_planners(tmp_path):
             for snap in snaps.values():
                 assert e.set_submap(snap)
             assert e.set_index(idx) == [] and e.state.version == idx.version
+            e.set_surfels(surfels)
             seq = SyntheticSequence(building="office", n_frames=200, H=60, W=80, seed=0)
             pts = eval_points([seq.frame(i) for i in range(0, 200, 20)], n_points=3000, every=1, rng=0)
             req = {"v": 1, "points": sc.arr(pts, "<f8"), "gradient": True, "source": "implicit"}
@@ -637,9 +719,26 @@ def test_e2e_real_submap_mapper_answers_planners(tmp_path):
             status, fused = sc.request(s, f"{ns}/query/sdf", {"v": 1, "points": sc.arr(pts, "<f8")}, 60.0)
             assert status == "ok" and fused["baked"] is True
             err_f = np.abs(sc.unarr(fused["sdf"]) - seq.gt_sdf(pts)).mean()
+            # 1.4: every submap carries its measured points; the service's exact fused answer is
+            # the in-process engine's (the measured-surface rule), the 1.3 answer (measured off)
+            # another.
+            assert all(sn.measured is not None and len(sn.measured["points"]) > 0 for sn in snaps.values())
+            status, ex = sc.request(s, f"{ns}/query/sdf", {"v": 1, "points": sc.arr(pts, "<f8"), "exact": True,
+                                                           "gradient": True}, 60.0)
+            assert status == "ok" and ex["baked"] is False
+            want = e.answer_sdf(protocol.SdfRequest(pts, gradient=True, exact=True))
+            np.testing.assert_allclose(sc.unarr(ex["sdf"]), want.sdf, atol=1e-5)
+            np.testing.assert_allclose(sc.unarr(ex["gradient"]), want.gradient, atol=1e-4)
+            e13 = QueryEngine(device="cpu", measured=False)
+            for snap in snaps.values():
+                assert e13.set_submap(snap)
+            e13.set_surfels(surfels)
+            err_x = np.abs(want.sdf - seq.gt_sdf(pts)).mean()
+            err_13 = np.abs(e13.answer_sdf(protocol.SdfRequest(pts, exact=True)).sdf - seq.gt_sdf(pts)).mean()
             # (Figures only: a walk of seconds trains each submap a few dozen steps.)
             print(f"{len(idx.submaps)} submaps, map version {idx.version}: SDF error {100 * err:.1f} cm (blend), "
-                  f"{100 * err_f:.1f} cm (fused, baked)")
+                  f"{100 * err_f:.1f} cm (fused, baked), {100 * err_x:.1f} cm (fused, exact; 1.3's answer "
+                  f"{100 * err_13:.1f} cm)")
             # A whole-map mesh, tiled.
             status, mesh = sc.request(s, f"{ns}/query/mesh", {"v": 1, "resolution": 0.1}, 120.0)
             assert status == "ok" and sc.unarr(mesh["faces"]).shape[0] > 1000

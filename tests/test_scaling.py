@@ -29,9 +29,10 @@ def test_quick_scaling_table(result):
     assert saved["criteria"] == res["criteria"]
     md = (out / "scaling.md").read_text()
     assert "| step time mean / p95 (ms) |" in md and "room7" in md and "implicit answer" in md
-    assert "| answers > 5 cm above the truth (fused), end of the walk / +2 s (% of points) |" in md
-    assert "| fused with the measured surface (not served yet): error, end of the walk / +2 s (cm) |" in md
-    assert cfg.source == "fused"  # the criteria judge query/sdf's default answer
+    assert "| answers > 5 cm above the truth (served), end of the walk / +2 s (% of points) |" in md
+    assert ("| fused with the measured surface (served by the submap mapper since 1.4): error, end of the walk / "
+            "+2 s (cm) |") in md and "fused answer: end of the walk" in md
+    assert cfg.source == "served"  # the criteria judge query/sdf's default answer for each mapper
     n, P = cfg.keyframes, cfg.period_s
     for m in methods:
         for scene in ("office", "floor"):
@@ -45,13 +46,16 @@ def test_quick_scaling_table(result):
             assert sum(p["walking"] for p in r["periods"]) == pytest.approx(n, abs=1)
             assert 0 < r["bytes_per_s"] <= r["bytes_per_s_all"]
             mem = r["memory_end"]
-            assert {"keyframes", "model", "observed"} <= set(mem) and all(v > 0 for v in mem.values())
+            assert {"keyframes", "model", "observed"} <= set(mem) and all(v > 0 for k, v in mem.items() if k != "measured")
+            assert (mem.get("measured", 0) > 0) == (m == "submaps")  # the submap mapper pools measured points
             assert r["memory_bytes"] == sum(mem.values()) and r["memory_per_keyframe"] == r["memory_bytes"] // n
             for k in ("walk_end", "end"):
                 assert math.isfinite(r[f"error_{k}_cm"]) and 0 < r[f"error_{k}_cm"] < 200
-                by = r[f"error_{k}_by_source_cm"]  # the default answer (judged), the network alone, and
-                # the fused answer with the measured surface (structure.measured, not served yet)
-                assert set(by) == {"fused", "implicit", "measured"} and by[cfg.source] == r[f"error_{k}_cm"]
+                by = r[f"error_{k}_by_source_cm"]  # the served answer (judged), 1.3's fused answer, the
+                # network alone, and the fused answer with the measured surface (structure.measured)
+                assert set(by) == {"served", "fused", "implicit", "measured"} and by[cfg.source] == r[f"error_{k}_cm"]
+                # the submap mapper serves the measured answer (1.4), the one-network mapper 1.3's
+                assert by["served"] == by["measured" if m == "submaps" else "fused"]
                 assert all(math.isfinite(v) and 0 < v < 200 for v in by.values())
                 high = r[f"too_high_{k}_by_source_pct"]  # answers > 5 cm above the exact SDF, % of points
                 assert set(high) == set(by) and high[cfg.source] == r[f"too_high_{k}_pct"]
@@ -91,12 +95,13 @@ def test_the_scorer_counts_answers_too_high_exactly():
             return (gt + offsets).astype(np.float32)
 
     mae, high = _Scorer(np.zeros((200, 3)), gt).evaluate(Pipe())
-    assert high == {"implicit": 15.0, "fused": 15.0}
+    assert high == {"implicit": 15.0, "fused": 15.0, "served": 15.0}
     from aisdf.structure.measured import MeasuredSurface
 
     # No surfel map and no measured point: the measured answer is the fused one.
     mae2, high2 = _Scorer(np.zeros((200, 3)), gt).evaluate(Pipe(), MeasuredSurface())
-    assert high2 == {"implicit": 15.0, "fused": 15.0, "measured": 15.0} and mae2["measured"] == mae2["fused"]
+    assert high2 == {"implicit": 15.0, "fused": 15.0, "measured": 15.0, "served": 15.0}
+    assert mae2["measured"] == mae2["fused"]
     expected = 100 * (30 * (TOO_HIGH_M + 0.01) + 20 * (TOO_HIGH_M - 0.01) + 40 * 0.2) / 200
     assert mae["fused"] == pytest.approx(expected, abs=1e-3)
 

@@ -186,10 +186,28 @@ def test_only_changed_submaps_are_published_and_messages_decode():
     msgs = dict(p.map_messages(1, changed_only=False, epoch=7))
     sub = {k: v for k, v in msgs.items() if k.startswith(keys.MAP_SUBMAPS + "/")}
     assert len(sub) == len(p.submaps) and keys.MAP_INDEX in msgs and keys.MAP_SURFELS in msgs
+    # 1.4: each submap carries the measured points of its extended box: those of every
+    # keyframe's pixels pooled in 10 cm voxels (3 pixels at least), computed here afresh.
+    from aisdf.structure.measured import MeasuredSurface
+
+    ref = MeasuredSurface(max_depth=p.cfg.max_depth)
+    for f in frames:
+        ref.add(f.depth, f.K, f.T_WC)
+    ref_pts = ref.points()
     for k, v in sub.items():
         snap = protocol.WeightSnapshot.from_msg(protocol.unpack(v))
         assert snap.submap["id"] == k.rsplit("/", 1)[1] and snap.epoch == 7 and snap.version == 1
         assert snap.observed is not None
+        cell = parse_cell_id(snap.submap["id"])
+        want = ref_pts[p.grid.inside(cell, ref_pts, grow=p.grid.overlap_m)]
+        got = snap.measured["points"]
+        assert snap.measured["voxel"] == 0.1 and len(got) == len(want) > 100
+        np.testing.assert_allclose(got[np.lexsort(got.T)], want[np.lexsort(want.T)].astype(np.float32), atol=1e-6)
+    off = small_pipeline(refine_every=0, measured=False)  # pooling off: 1.3 messages
+    off.add_keyframe(frames[0])
+    off.step()
+    assert all(protocol.WeightSnapshot.from_msg(protocol.unpack(v)).measured is None
+               for k, v in off.map_messages(1) if k.startswith(keys.MAP_SUBMAPS + "/"))
     idx = protocol.SubmapIndex.from_msg(protocol.unpack(msgs[keys.MAP_INDEX]))
     assert set(idx.submaps) == {sm.id for sm in p.submaps.values()}
     # nothing trained: only the index and surfels go out
@@ -256,6 +274,7 @@ def test_checkpoint_restores_every_submap_and_continues_identically():
     ck = p.checkpoint()
     q = restore_pipeline(ck)
     assert isinstance(q, SubmapPipeline) and set(q.submaps) == set(p.submaps) and q.n_keyframes == p.n_keyframes
+    assert np.array_equal(q.measured.keys, p.measured.keys) and np.array_equal(q.measured.counts, p.measured.counts)
     pts = np.random.default_rng(1).uniform(-3, 3, (500, 3)) + frames[5].T_WC[:3, 3]
     assert np.array_equal(p.sdf(pts), q.sdf(pts))
     for f in frames[12:14]:
@@ -286,11 +305,13 @@ def test_bad_keyframe_changes_nothing():
     p = small_pipeline()
     for f in frames[:3]:
         p.add_keyframe(f)
-    n, subs = p.n_keyframes, set(p.submaps)
+    n, subs, pooled = p.n_keyframes, set(p.submaps), p.measured.counts.copy()
     empty = Frame(999, 0.0, np.zeros_like(frames[3].depth), frames[3].K, frames[3].T_WC)
     with pytest.raises(ValueError, match="valid depth"):
         p.add_keyframe(empty)
-    assert p.n_keyframes == n and set(p.submaps) == subs
+    with pytest.raises(ValueError, match="already in the map"):
+        p.add_keyframe(frames[1])
+    assert p.n_keyframes == n and set(p.submaps) == subs and np.array_equal(p.measured.counts, pooled)
 
 
 def _map_error(offset, steps: int = 300, settle: int = 0, seed: int = 0) -> float:

@@ -23,14 +23,32 @@ import torch
 
 from aisdf.baked import BakeConfig, BakedField, bake
 from aisdf.structure.fusion import DEFAULT_FUSE_RADIUS, fuse
+from aisdf.structure.measured import measured_fuse_grad
 from aisdf.structure.surfel_types import Surfels
 from aisdf.submaps.field import assign
 
-from .changes import in_boxes, surfel_changes
+from .changes import in_boxes, measured_changes, surfel_changes
 from .mapstate import MapState
 
 log = logging.getLogger(__name__)
 BAKE_CHUNK = 2048  # network points per pass while baking: bounds the activations (~15 MB at width 128)
+
+
+def fused_answer(state: MapState, pts: np.ndarray, sdf_i: np.ndarray, grad_i: np.ndarray | None,
+                 d_e: np.ndarray | None, g_e: np.ndarray | None, radius: float) -> tuple[np.ndarray, np.ndarray | None]:
+    """What ``fused`` answers, from the map's implicit answer and the surfel distance at
+    ``pts`` (None: no surfels): ``fusion.fuse`` (the paper's Sec. IV-D, within ``radius``),
+    and where the map carries measured points (protocol 1.4) the measured-surface rule on
+    top (``structure.measured.measured_fuse_grad``: the surfel distance where nothing was
+    measured nearer, capped at the nearest measured point)."""
+    if d_e is None:
+        d_e, g_e = np.full(len(sdf_i), np.inf, np.float32), np.zeros((len(sdf_i), 3), np.float32)
+    sdf, grad, _ = fuse(sdf_i, grad_i, d_e, g_e, radius)
+    if state.measured is None:
+        return sdf, grad
+    d_m, g_m = state.measured.nearest(pts)
+    f, g = measured_fuse_grad(sdf, grad, sdf_i, d_e, g_e, d_m, g_m if grad is not None else None, radius=radius)
+    return f.astype(np.float32), (None if g is None else g.astype(np.float32))
 
 
 @dataclass(frozen=True)
@@ -108,7 +126,10 @@ class Baker:
                     one(i)
             if explicit is not None:
                 d_e, g_e, _ = explicit(pts.astype(np.float64))
-                sdf, grad, _ = fuse(sdf, grad, d_e.astype(np.float32), g_e.astype(np.float32), self.fuse_radius)
+                sdf, grad = fused_answer(state, pts, sdf, grad, d_e.astype(np.float32), g_e.astype(np.float32),
+                                         self.fuse_radius)
+            elif state.measured is not None:
+                sdf, grad = fused_answer(state, pts, sdf, grad, None, None, self.fuse_radius)
             return sdf, grad
 
         return fn
@@ -148,7 +169,8 @@ class Baker:
         (a new network, a new mapper incarnation or grid); the new surfel reference). The
         blend at a point depends only on the submaps whose extended boxes hold it; the fused
         answer only on surfels within ``fuse_radius`` (surfels that moved less than
-        ``surfel_tol``, as all do a little when the Atlanta frame is refined, count as unchanged)."""
+        ``surfel_tol``, as all do a little when the Atlanta frame is refined, count as unchanged)
+        and measured points (1.4) within ``fuse_radius``: those of changed submaps that moved."""
         old = baked.state
         if (old.submaps is None) != (new.submaps is None) or old.epoch != new.epoch:
             return None, new.surfels
@@ -162,9 +184,12 @@ class Baker:
             changed, grid, cells = new.submaps.changed_since(old.submaps), new.submaps.grid, set(new.submaps.submaps)
         boxes, ref = surfel_changes(baked.surfel_ref, new.surfels, self.surfel_tol)
         grow = self.fuse_radius + 0.05
+        moved = measured_changes(old.submaps, new.submaps, changed) if grid is not None else None
 
         def dirty(points: np.ndarray) -> np.ndarray:
             d = in_boxes(points, boxes, grow)
+            if moved is not None:
+                d |= moved.nearest(points)[0] <= grow  # a measured point counts within fuse_radius
             if grid is not None:
                 covered = np.zeros(len(points), bool)
                 for idx in assign(grid, cells, points).values():

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from aisdf.structure.measured import MeasuredPoints
 from aisdf.structure.surfel_types import Surfels
 
 
@@ -84,3 +85,22 @@ def in_boxes(points: np.ndarray, boxes: np.ndarray, grow: float, cell: float = 1
             hit |= np.all((q >= bl) & (q <= bh), axis=1)
         out[ii] = hit
     return out
+
+
+def measured_changes(old, new, cells) -> MeasuredPoints | None:
+    """The measured points (protocol 1.4) that are in one of the submap sets ``old`` and
+    ``new`` but not in the other, among the submaps of ``cells`` (those that changed), or
+    None when none changed. A voxel's point moves only when a keyframe adds pixels to it, so
+    an unchanged voxel's point is equal bit for bit."""
+    moved = []
+    for c in cells:
+        a, b = old.submaps.get(c), new.submaps.get(c)
+        pa = np.zeros((0, 3), np.float32) if a is None or a.measured is None else a.measured
+        pb = np.zeros((0, 3), np.float32) if b is None or b.measured is None else b.measured
+        if pa is pb:
+            continue
+        both = np.concatenate([pa, pb]).astype(np.float32)
+        _, idx, counts = np.unique(both, axis=0, return_index=True, return_counts=True)
+        moved.append(both[idx[counts == 1]])  # in one of the two only
+    moved = [m for m in moved if len(m)]
+    return MeasuredPoints(np.concatenate(moved)) if moved else None

@@ -45,5 +45,8 @@ class QueryConfig(ServiceConfig):
     bake_surfel_tol: float = Field(0.001, ge=0, description="baked field: a re-bake keeps the samples around a surfel "
                                    "that moved less than this (m; every surfel moves a little whenever the Atlanta "
                                    "frame is refined); 0 = re-evaluate around every change")
+    measured: bool = Field(True, description="fused answers use the measured points a submap mapper publishes with "
+                           "each submap (protocol 1.4: the surfel distance where nothing was measured nearer, capped "
+                           "at the nearest measured point; README, The measured surface); false = the 1.3 answer")
     workers: int = Field(2, ge=1, le=64, description="threads evaluating sdf requests")
     queue_max: int = Field(32, ge=1, description="sdf requests waiting; beyond, an immediate 'busy' error reply")

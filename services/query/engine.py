@@ -38,15 +38,15 @@ import torch
 from aisdf import protocol
 from aisdf.baked import BakeConfig
 from aisdf.collision import chomp_cost
-from aisdf.structure.fusion import DEFAULT_FUSE_RADIUS, fuse
+from aisdf.structure.fusion import DEFAULT_FUSE_RADIUS
 from aisdf.network import build_model, load_numpy_state
 from aisdf.observed import ObservedGrid
 from aisdf.submaps.field import blend
 from aisdf.submaps.grid import SubmapGrid, parse_cell_id
 from aisdf.structure.surfel_types import Surfels
 
-from .baker import Baker, BakedMap
-from .mapstate import MapState, Submap, SubmapSet, union_observed
+from .baker import Baker, BakedMap, fused_answer
+from .mapstate import MapState, Submap, SubmapSet, union_measured, union_observed
 from .meshing import tiled_marching_cubes
 
 log = logging.getLogger(__name__)
@@ -62,7 +62,8 @@ class QueryEngine:
     def __init__(self, max_points: int = 1_000_000, chunk_points: int = 65_536, device: str = "auto",
                  fuse_radius: float = DEFAULT_FUSE_RADIUS, mesh_resolution: float = 0.05, mesh_max_cells: int = 16_000_000,
                  bake: bool = True, bake_config: BakeConfig | None = None, bake_threads: int = 2,
-                 bake_duty: float = 0.75, bake_nice: int = 10, mesh_tile: int = 64, surfel_tol: float = 0.001):
+                 bake_duty: float = 0.75, bake_nice: int = 10, mesh_tile: int = 64, surfel_tol: float = 0.001,
+                 measured: bool = True):
         self.max_points = max_points
         self.chunk_points = chunk_points
         self.device = pick_device(device)
@@ -75,6 +76,7 @@ class QueryEngine:
         self._state: MapState | None = None
         self._surfels: tuple[tuple[int, int], Surfels] | None = None
         self._lock = threading.Lock()  # serialises writers only; readers take the reference
+        self.use_measured = bool(measured)  # protocol 1.4: fused answers use the submaps' measured points
         self.baker = Baker(self._field, lambda: self._state, self.device, chunk_points, fuse_radius, bake_config,
                            bake_threads, bake_duty, bake_nice, surfel_tol, enabled=bake)
 
@@ -84,7 +86,7 @@ class QueryEngine:
                    cfg.mesh_max_cells, cfg.bake,
                    BakeConfig(block=cfg.bake_block, fine=cfg.bake_fine, band=cfg.bake_band, tol=cfg.bake_tol,
                               near_surface=cfg.bake_near_surface), cfg.bake_threads, cfg.bake_duty, cfg.bake_nice,
-                   cfg.mesh_tile, cfg.bake_surfel_tol)
+                   cfg.mesh_tile, cfg.bake_surfel_tol, cfg.measured)
 
     @property
     def fuse_radius(self) -> float:
@@ -178,7 +180,8 @@ class QueryEngine:
                 grid, subs, version = cur.submaps.grid, dict(cur.submaps.submaps), cur.version
             else:  # the first submap, or a new mapper incarnation: a new set
                 subs, version = {}, snap.version
-            subs[cell] = Submap(cell, snap.version, snap.step, net, observed, bounds)
+            measured = snap.measured["points"] if snap.measured is not None and self.use_measured else None
+            subs[cell] = Submap(cell, snap.version, snap.step, net, observed, bounds, measured)
             idx = self._index
             if idx is not None and idx.epoch == snap.epoch and self._complete(subs, idx):
                 version = max(version, idx.version)
@@ -210,7 +213,7 @@ class QueryEngine:
         if sv[0] < epoch:  # surfels of an older mapper incarnation: not this map's
             surf, sv = None, (0, -1)
         return MapState(version, sum(s.step for s in subs), None, bounds, surf, sv[1], epoch, observed,
-                        submaps=sset)
+                        submaps=sset, measured=union_measured(subs))
 
     def set_index(self, idx: protocol.SubmapIndex) -> list[str] | None:
         """Take a ``map/index``: the ids of the submaps to get because the index lists them at
@@ -231,7 +234,7 @@ class QueryEngine:
                     if subs.get(parse_cell_id(sid)) is None or subs[parse_cell_id(sid)].version < v["version"]]
             if not want and idx.version > cur.version:
                 self._state = MapState(idx.version, cur.step, None, cur.bounds, cur.surfels, cur.surfel_version,
-                                       cur.epoch, cur.observed, submaps=cur.submaps)
+                                       cur.epoch, cur.observed, submaps=cur.submaps, measured=cur.measured)
                 self.baker.map_arrived(self._state)
         return want
 
@@ -312,9 +315,9 @@ class QueryEngine:
                 raise protocol.ProtocolError("no_map", "no explicit planar map yet (no surfels published)")
             return self._explicit(state.surfels, pts)
         sdf, grad = self._field(state, pts, gradient)
-        if source == "fused" and has_surfels:
-            d_e, g_e = self._explicit(state.surfels, pts)
-            sdf, grad, _ = fuse(sdf, grad, d_e, g_e, self.fuse_radius)
+        if source == "fused" and (has_surfels or state.measured is not None):
+            d_e, g_e = self._explicit(state.surfels, pts) if has_surfels else (None, None)
+            sdf, grad = fused_answer(state, pts, sdf, grad, d_e, g_e, self.fuse_radius)
         return sdf, grad
 
     def answer_sdf(self, req: protocol.SdfRequest) -> protocol.SdfReply:

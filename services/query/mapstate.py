@@ -11,6 +11,7 @@ import numpy as np
 import torch
 
 from aisdf.observed import ObservedGrid
+from aisdf.structure.measured import MeasuredPoints
 from aisdf.structure.surfel_types import Surfels
 from aisdf.submaps.grid import SubmapGrid
 
@@ -25,6 +26,7 @@ class Submap:
     net: torch.nn.Module
     observed: ObservedGrid | None  # observed space of its extended box
     bounds: np.ndarray | None
+    measured: np.ndarray | None = None  # protocol 1.4: (M, 3) measured points in its extended box
 
 
 @dataclass(frozen=True)
@@ -52,6 +54,7 @@ class MapState:
     observed: ObservedGrid | None = None  # observed space, when the mapper sent it (protocol 1.1)
     received: float = field(default_factory=time.monotonic)  # when these weights arrived
     submaps: SubmapSet | None = None  # protocol 1.3: the map as submaps (then net is None)
+    measured: MeasuredPoints | None = None  # protocol 1.4: the union of the submaps' measured points
 
     @property
     def order(self) -> tuple[int, int]:
@@ -59,7 +62,7 @@ class MapState:
 
     def with_surfels(self, surfels: Surfels | None, surfel_version: int) -> "MapState":
         return MapState(self.version, self.step, self.net, self.bounds, surfels, surfel_version, self.epoch,
-                        self.observed, self.received, self.submaps)
+                        self.observed, self.received, self.submaps, self.measured)
 
     def same_field(self, other: "MapState") -> bool:
         """Same implicit field and surfels (a bake of one is a bake of the other)."""
@@ -98,3 +101,10 @@ def union_observed(grids: list[ObservedGrid], align: float) -> ObservedGrid | No
             hit = g.contains(origin + (idx + 0.5) * voxel)
             occ[tuple(idx[hit].T)] = True
     return ObservedGrid(origin, voxel, occ)
+
+
+def union_measured(submaps) -> MeasuredPoints | None:
+    """The measured points of all ``submaps`` that carry some (points in overlaps come once
+    per submap: the nearest distance does not mind), or None when none does."""
+    held = [s.measured for s in submaps if s.measured is not None]
+    return MeasuredPoints(np.concatenate(held)) if held else None

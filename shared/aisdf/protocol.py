@@ -116,6 +116,7 @@ class WeightSnapshot:
     epoch: int = 0  # protocol 1.2: the mapper incarnation; maps order by (epoch, version)
     observed: dict | None = None  # protocol 1.1: the observed-space grid (aisdf.observed)
     submap: dict | None = None  # protocol 1.3: {"id": "i_j_k", "grid": SubmapGrid message} (map/submaps/<id>)
+    measured: dict | None = None  # protocol 1.4: {"voxel": float, "points": (M, 3) float32} (measured_msg)
 
     def to_msg(self) -> dict:
         msg = {
@@ -132,6 +133,9 @@ class WeightSnapshot:
             msg["observed"] = self.observed
         if self.submap is not None:
             msg["submap"] = self.submap
+        if self.measured is not None:
+            msg["measured"] = {"voxel": float(self.measured["voxel"]),
+                               "points": encode_array(np.asarray(self.measured["points"], np.float32))}
         return msg
 
     @classmethod
@@ -151,7 +155,21 @@ class WeightSnapshot:
         submap = _get(msg, "submap", dict, None, "a map")
         if submap is not None:
             _submap_header(submap)
-        return cls(version, step, stamp, model, state, epoch, observed, submap)
+        measured = _get(msg, "measured", dict, None, "a map")
+        if measured is not None:
+            measured = _measured(measured)
+        return cls(version, step, stamp, model, state, epoch, observed, submap, measured)
+
+
+def _measured(m: Mapping) -> dict:
+    """Validate a snapshot's ``measured`` map (1.4): {"voxel": float, "points": (M, 3) float32}."""
+    voxel = _number(m, "voxel")
+    if not voxel > 0:
+        raise _bad(f"'measured.voxel' must be positive, got {voxel}")
+    pts = decode_array(m.get("points"), "measured.points", ("<f4",), (None, 3))
+    if not np.all(np.isfinite(pts)):
+        raise _bad("'measured.points' has non-finite values")
+    return {"voxel": voxel, "points": pts}
 
 
 def _submap_header(m: Mapping) -> tuple[str, "object"]:

@@ -100,9 +100,11 @@ class ScalingConfig(Model):
     threads: int | None = Field(None, ge=1, description="torch threads (None: torch's default)")
     out: str = Field("runs/bench-scaling", description="results folder")
     progress: bool = Field(True, description="print a line per event")
-    source: Literal["fused", "implicit"] = Field(
-        "fused", description="the answer scored (and judged by the criteria): fused = query/sdf's default "
-        "(network and surfel map), implicit = the network alone; both are in the table")
+    source: Literal["served", "fused", "implicit", "measured"] = Field(
+        "served", description="the answer scored (and judged by the criteria): served = query/sdf's default for "
+        "the mapper (the submap mapper: fused with its published measured points, protocol 1.4; the one-network "
+        "mapper: fused), fused = the network and surfel map (1.3's answer), implicit = the network alone, "
+        "measured = fused with the measured surface; all are in the table")
 
 
 PROFILES: dict[str, dict[str, Any]] = {
@@ -169,7 +171,7 @@ def report(res: dict) -> str:
              + (f" Every figure is the mean over seeds {', '.join(map(str, seeds))}." if seeds else ""), ""]
     avail = [m for m in res["methods"] if m in res["runs"]]
     src = cfg.get("source", "implicit")
-    other = "implicit" if src == "fused" else "fused"
+    others = [k for k in ("served", "fused", "implicit") if k != src]
     head = "| | " + " | ".join(f"{s}: {METHODS[m][0]}" for s in res["scenes"] for m in avail) + " |"
     lines += [head, "|---|" + "---:|" * (len(res["scenes"]) * len(avail))]
     rows = [
@@ -181,19 +183,24 @@ def report(res: dict) -> str:
         ("step time mean / p95 (ms)", lambda r: f"{r['step_ms']['mean']:.1f} / {r['step_ms']['p95']:.1f}"
          if r["step_ms"]["n"] else "no step"),
         ("mapper memory (MB)", lambda r: _mb(r["memory_bytes"])),
-        ("  keyframes / model+optimiser / observed (MB)",
-         lambda r: " / ".join(_mb(r["memory_end"].get(k, 0)) for k in ("keyframes", "model", "observed"))),
+        ("  keyframes / model+optimiser / observed / measured points (MB)",
+         lambda r: " / ".join(_mb(r["memory_end"].get(k, 0)) for k in ("keyframes", "model", "observed", "measured"))),
         ("bytes per keyframe (kB)", lambda r: f"{r['memory_per_keyframe'] / 1e3:.1f}"),
         ("published while walking (kB/s)", lambda r: f"{r['bytes_per_s'] / 1e3:.1f}"),
         ("republishing everything (kB/s)", lambda r: f"{r['bytes_per_s_all'] / 1e3:.1f}"),
         (f"SDF error ({src}), end of the walk (cm)", lambda r: f"{r['error_walk_end_cm']:.2f}"),
         (f"SDF error ({src}), +{cfg['tail_s']:g} s (cm)", lambda r: f"{r['error_end_cm']:.2f}"),
-        (f"  {other} answer: end of the walk / +{cfg['tail_s']:g} s (cm)",
-         lambda r: f"{r['error_walk_end_by_source_cm'][other]:.2f} / {r['error_end_by_source_cm'][other]:.2f}"),
+        *[(f"  {o} answer: end of the walk / +{cfg['tail_s']:g} s (cm)",
+           lambda r, o=o: f"{r['error_walk_end_by_source_cm'][o]:.2f} / {r['error_end_by_source_cm'][o]:.2f}"
+           if o in r.get("error_end_by_source_cm", {}) else "-") for o in others],
         (f"answers > {100 * TOO_HIGH_M:g} cm above the truth ({src}), end of the walk / +{cfg['tail_s']:g} s "
          "(% of points)", lambda r: f"{r['too_high_walk_end_pct']:.1f} / {r['too_high_end_pct']:.1f}"
          if "too_high_end_pct" in r else "-"),
-        (f"fused with the measured surface (not served yet): error, end of the walk / +{cfg['tail_s']:g} s (cm)",
+        (f"  ... of the fused answer (1.3, no measured points), end of the walk / +{cfg['tail_s']:g} s (%)",
+         lambda r: f"{r['too_high_walk_end_by_source_pct']['fused']:.1f} / {r['too_high_end_by_source_pct']['fused']:.1f}"
+         if "too_high_end_by_source_pct" in r else "-"),
+        (f"fused with the measured surface (served by the submap mapper since 1.4): error, end of the walk / "
+         f"+{cfg['tail_s']:g} s (cm)",
          lambda r: f"{r['error_walk_end_by_source_cm']['measured']:.2f} / {r['error_end_by_source_cm']['measured']:.2f}"
          if "measured" in r.get("error_end_by_source_cm", {}) else "-"),
         (f"  ... answers > {100 * TOO_HIGH_M:g} cm above the truth, end of the walk / +{cfg['tail_s']:g} s (%)",
@@ -313,8 +320,8 @@ def add_arguments(p) -> None:
     p.add_argument("--seed", type=int)
     p.add_argument("--seeds", type=int, help="walks per method and scene (seeds seed, seed + 1, ...); the table and "
                    "the criteria take their mean, and each seed's figures follow (default 1)")
-    p.add_argument("--source", choices=["fused", "implicit"], help="the answer judged (default fused, query/sdf's "
-                   "default; the table shows both)")
+    p.add_argument("--source", choices=["served", "fused", "implicit", "measured"], help="the answer judged "
+                   "(default served: query/sdf's default for the mapper; the table shows the others)")
     p.add_argument("--threads", type=int, help="torch threads")
     p.add_argument("--out", help="results folder (default runs/bench-scaling)")
     p.add_argument("--training", type=_json_map, help="training overrides over the preset (for submaps, over its "

@@ -13,7 +13,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from ..structure.measured import MeasuredSurface
+from ..structure.measured import MeasuredPoints, MeasuredSurface
 
 if TYPE_CHECKING:
     from .scaling import ScalingConfig
@@ -63,11 +63,15 @@ TOO_HIGH_M = 0.05  # an answer this far above the exact SDF promises a planner r
 
 
 class _Scorer:
-    """Fixed evaluation points with their exact SDF. ``scores(pipe)`` -> mean |error| in cm of
-    the network alone (``implicit``) and of the default answer of ``query/sdf`` (``fused``: the
-    network and the surfel map, ``aisdf.structure.fusion``); ``score(pipe, source)`` one of them.
-    ``evaluate(pipe)`` -> those means and, per answer, the share of points (%) where it is
-    more than ``TOO_HIGH_M`` above the exact SDF (the unsafe side for a planner)."""
+    """Fixed evaluation points with their exact SDF. ``evaluate(pipe, measured)`` -> mean
+    |error| in cm and the share of points (%) where the answer is more than ``TOO_HIGH_M``
+    above the exact SDF (the unsafe side for a planner), per answer: the network alone
+    (``implicit``), the network and the surfel map (``fused``, ``aisdf.structure.fusion``:
+    protocol 1.3's answer), that with the measured surface (``measured``,
+    ``structure.measured``; ``measured`` gives the distance to the nearest measured point),
+    and what ``query/sdf`` serves by default for this mapper (``served``: ``measured`` when
+    the mapper publishes measured points, protocol 1.4, else ``fused``).
+    ``score(pipe, source, measured)`` one of the means."""
 
     def __init__(self, points: np.ndarray, gt: np.ndarray):
         self.points, self.gt = points, gt
@@ -84,21 +88,32 @@ class _Scorer:
         out = {"implicit": f, "fused": np.asarray(fuse(f, None, d_e, None)[0], dtype=np.float64)}
         if measured is not None:
             out["measured"] = measured_fuse(out["fused"], f, d_e, measured.distance(self.points))
+        out["served"] = out["measured"] if serves_measured(pipe) and measured is not None else out["fused"]
         return out
 
     def evaluate(self, pipe, measured=None) -> tuple[dict[str, float], dict[str, float]]:
-        """(mean |error| in cm, % of points more than TOO_HIGH_M above the truth), per answer;
-        with a ``MeasuredSurface`` also the answer ``measured`` (``structure.measured``)."""
+        """(mean |error| in cm, % of points more than TOO_HIGH_M above the truth), per answer."""
         ans = self._answers(pipe, measured)
         mae = {k: round(100.0 * float(np.mean(np.abs(v - self.gt))), 3) for k, v in ans.items()}
         high = {k: round(100.0 * float(np.mean(v - self.gt > TOO_HIGH_M)), 3) for k, v in ans.items()}
         return mae, high
 
-    def scores(self, pipe) -> dict[str, float]:
-        return self.evaluate(pipe)[0]
+    def score(self, pipe, source: str = "served", measured=None) -> float:
+        return self.evaluate(pipe, measured)[0][source]
 
-    def score(self, pipe, source: str = "fused") -> float:
-        return self.scores(pipe)[source]
+
+def serves_measured(pipe) -> bool:
+    """Does this mapper publish measured points (protocol 1.4; the submap mapper by default)?"""
+    return getattr(pipe, "measured", None) is not None and hasattr(pipe, "measured_points")
+
+
+def measured_of(pipe, pooled: MeasuredSurface):
+    """The measured points the answers use: those the mapper publishes (the union of its
+    submaps' points, what the query service holds) when it publishes some, else the bench's
+    own pool of every keyframe (an answer no service gives for this mapper)."""
+    if serves_measured(pipe):
+        return MeasuredPoints(pipe.measured_points())
+    return pooled
 
 
 def whole_scorer(seq, frames: list[dict], cfg: ScalingConfig) -> _Scorer:
@@ -189,12 +204,14 @@ def walk(pipe, seq, frames: list[dict], stream_per_kf: float, cfg: ScalingConfig
                     if sc is not None:
                         scorers[room] = sc
                         rooms[room] = {"t_after_visit": round(when, 2), "t_scored": round(t, 2), "points": len(sc.points),
-                                       "keyframes": len(vis), "after_visit_cm": sc.score(pipe, cfg.source)}
+                                       "keyframes": len(vis),
+                                       "after_visit_cm": sc.score(pipe, cfg.source, measured_of(pipe, measured))}
                         say(f"  {room}: {rooms[room]['after_visit_cm']:.2f} cm just after its visit "
                             f"({len(vis)} keyframes, t = {when:.0f} s)")
                 else:
                     key = "walk_end" if kind == "walk_end" else "end"
-                    both, high = whole.evaluate(pipe, measured)
+                    pts = measured_of(pipe, measured)
+                    both, high = whole.evaluate(pipe, pts)
                     rec[f"error_{key}_cm"] = both[cfg.source]
                     rec[f"error_{key}_by_source_cm"] = both
                     rec[f"too_high_{key}_pct"] = high[cfg.source]
@@ -203,7 +220,7 @@ def walk(pipe, seq, frames: list[dict], stream_per_kf: float, cfg: ScalingConfig
                     rec[f"steps_{key}"] = int(pipe.steps)
                     rec[f"t_{key}"] = round(t, 2)  # when it was scored (later than planned on a busy machine)
                     for r, sc in scorers.items():
-                        rooms[r][f"{key}_cm"] = sc.score(pipe, cfg.source)
+                        rooms[r][f"{key}_cm"] = sc.score(pipe, cfg.source, pts)
                     say(f"  {'end of the walk' if key == 'walk_end' else f'+{cfg.tail_s:g} s'}: "
                         f"{rec[f'error_{key}_cm']:.2f} cm, {pipe.steps} steps")
             if kind == "end":

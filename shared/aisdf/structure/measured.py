@@ -1,6 +1,7 @@
 """The measured surface: every depth pixel's 3-d point, pooled into voxels, and an answer
 that uses it together with the network and the surfel map (beyond the paper; measured by
-``aisdf bench scaling``, not served by ``query/sdf`` yet).
+``aisdf bench scaling``; served by ``query/sdf`` since protocol 1.4, the submap mapper
+publishing each submap's points).
 
 Why. The fused answer (``fusion``) takes the smaller of the network and the surfel distance,
 so where the network is below an exact surfel distance it stays below. On the building
@@ -14,7 +15,8 @@ never measured, which no answer can know). So:
   moves to the surfel distance; the weight goes linearly from 0 (a measured point at the
   surfel distance minus ``margin`` or nearer) to 1 (none nearer than the surfel distance);
 * everywhere outside obstacles the answer is capped at the distance to the nearest measured
-  point plus ``slack`` (a measured point is on a surface, up to depth noise);
+  point plus ``slack`` (a measured point is on a surface, up to depth noise), where that
+  point is within the fusion radius (2 m, as surfels count);
 * where the network says inside (negative), the fused answer is kept: neither the surfels
   nor the points say what is inside.
 
@@ -97,19 +99,82 @@ class MeasuredSurface:
         return int(self.keys.nbytes + self.sums.nbytes + self.counts.nbytes)
 
 
+class MeasuredPoints:
+    """A fixed set of measured points (a ``MeasuredSurface``'s, or the union of what the
+    submaps of a map carry) and the distance to the nearest of them, with its direction."""
+
+    def __init__(self, points: np.ndarray):
+        pts = np.asarray(points, np.float64).reshape(-1, 3)
+        if not np.all(np.isfinite(pts)):
+            raise ValueError("measured points must be finite")
+        self.points = pts
+        self._tree = None
+
+    def __len__(self) -> int:
+        return len(self.points)
+
+    def distance(self, q: np.ndarray) -> np.ndarray:
+        """(N,) distance to the nearest point (inf when there is none)."""
+        return self.nearest(q)[0]
+
+    def nearest(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(distance (N,), unit direction from the nearest point to the query (N, 3)); inf and
+        zeros when there is no point (or where the query is on a point)."""
+        q = np.asarray(q, np.float64).reshape(-1, 3)
+        if not len(self.points):
+            return np.full(len(q), np.inf), np.zeros((len(q), 3))
+        if self._tree is None:
+            from scipy.spatial import cKDTree
+
+            self._tree = cKDTree(self.points)
+        d, i = self._tree.query(q)
+        diff = q - self.points[i]
+        with np.errstate(invalid="ignore", divide="ignore"):
+            g = np.where(d[:, None] > 0, diff / d[:, None], 0.0)
+        return d, g
+
+
 def measured_fuse(fused: np.ndarray, sdf_i: np.ndarray, d_e: np.ndarray, d_m: np.ndarray,
                   margin: float = DEFAULT_MARGIN, slack: float = DEFAULT_SLACK,
                   radius: float | None = 2.0) -> np.ndarray:
     """The answer of the module docstring, values only. ``fused``: ``fusion.fuse``'s answer;
     ``sdf_i``: the network's; ``d_e``: the (signed or unsigned) distance to the surfel map
     (inf where none); ``d_m``: ``MeasuredSurface.distance``. The surfel distance counts only
-    within ``radius`` (as in ``fusion``)."""
+    within ``radius`` (as in ``fusion``), and so does a measured point: a point changes
+    answers only within ``radius`` of it (what lets the query service re-bake only there)."""
+    return measured_fuse_grad(fused, None, sdf_i, d_e, None, d_m, None, margin, slack, radius)[0]
+
+
+def measured_fuse_grad(fused, g_fused, sdf_i, d_e, g_e, d_m, g_m, margin: float = DEFAULT_MARGIN,
+                       slack: float = DEFAULT_SLACK, radius: float | None = 2.0):
+    """``measured_fuse`` with its gradient: returns (sdf (N,), gradient (N, 3) or None).
+    ``g_fused``: the fused answer's gradient; ``g_e``: the gradient of ``d_e`` as given (signed
+    or not; it is turned to point away from the surfel, as ``fusion.fuse`` does); ``g_m``: the
+    direction from the nearest measured point (``MeasuredPoints.nearest``). The gradient is
+    the exact one of the rule: the blend's ``w g_e + (1 - w) g_fused + (d_e - fused) grad w``,
+    the nearest point's direction where the cap holds, the fused gradient inside."""
     fused, sdf_i = np.asarray(fused, np.float64), np.asarray(sdf_i, np.float64)
-    d_e, d_m = np.abs(np.asarray(d_e, np.float64)), np.asarray(d_m, np.float64)
+    d_e_raw = np.asarray(d_e, np.float64)
+    d_e, d_m = np.abs(d_e_raw), np.asarray(d_m, np.float64)
     outside = sdf_i >= 0
     near = np.isfinite(d_e) & (d_e <= (np.inf if radius is None else radius))
     with np.errstate(invalid="ignore"):  # inf - inf where no surfel: not near, weight 0
-        w = np.clip((d_m - (d_e - margin)) / margin, 0.0, 1.0)
-    w = np.where(near & outside, np.nan_to_num(w, nan=0.0), 0.0)
-    a = w * np.where(near, d_e, 0.0) + (1.0 - w) * fused
-    return np.where(outside, np.minimum(a, d_m + slack), fused)
+        t = (d_m - (d_e - margin)) / margin
+    t = np.nan_to_num(t, nan=0.0)
+    w = np.where(near & outside, np.clip(t, 0.0, 1.0), 0.0)
+    de0 = np.where(near, d_e, 0.0)
+    a = w * de0 + (1.0 - w) * fused
+    cap = d_m + slack if radius is None else np.where(d_m <= radius, d_m + slack, np.inf)
+    capped = outside & (cap < a)
+    sdf = np.where(capped, cap, np.where(outside, a, fused))
+    if g_fused is None:
+        return sdf, None
+    g_fused = np.asarray(g_fused, np.float64)
+    g_u = np.zeros_like(g_fused) if g_e is None else np.where((d_e_raw < 0)[:, None], -1.0, 1.0) * np.asarray(
+        g_e, np.float64)
+    g_m = np.zeros_like(g_fused) if g_m is None else np.asarray(g_m, np.float64)
+    ramp = (near & outside & (t > 0) & (t < 1))[:, None]
+    grad_w = np.where(ramp, (g_m - g_u) / margin, 0.0)
+    ga = w[:, None] * g_u + (1.0 - w[:, None]) * g_fused + np.where(ramp, (de0 - fused)[:, None], 0.0) * grad_w
+    grad = np.where(capped[:, None], g_m, np.where(outside[:, None], ga, g_fused))
+    return sdf, grad

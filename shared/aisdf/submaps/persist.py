@@ -63,6 +63,8 @@ class SubmapCheckpoints:
         for fd in d["frames"]:
             f = Frame.from_dict(fd)
             p.frames[f.key] = Keyframe.make(f, p.cfg.max_depth)
+            if p.measured is not None:  # rebuilt from the keyframes (the same pixels, the same voxels)
+                p.measured.add(f.depth, f.K, f.T_WC)
         if d.get("grid") is not None:
             p.grid = SubmapGrid.from_msg(d["grid"])
         p._waiting = [p.frames[(s, int(i))] for s, i in d.get("waiting", [])]

@@ -38,6 +38,7 @@ from ..mapping.frames import Frame, Keyframe
 from ..mapping.presets import submap_training_config
 from ..mapping.trainer import Trainer
 from ..observed import ObservedSpace
+from ..structure.measured import MeasuredSurface
 from ..pipeline import MIN_VALID_PIXELS, frame_from_keyframe, grow_bounds
 from .field import blend
 from .grid import SubmapGrid, cell_id, parse_cell_id
@@ -76,6 +77,9 @@ class SubmapConfig(Model):
                                           "it has this many unpublished steps ...")
     background_publish_periods: int = Field(10, ge=1, description="... or this many publications after its first "
                                             "unpublished step; submaps in view and new ones go out at once")
+    measured: bool = Field(True, description="pool the keyframes' depth pixels into 10 cm voxels and publish, with "
+                           "each submap, the mean points of the voxels in its extended box (protocol 1.4: the query "
+                           "service's fused answers use them; README, The measured surface)")
 
 
 @dataclass
@@ -120,6 +124,8 @@ class SubmapPipeline(SubmapPublishing, SubmapCheckpoints):
         self._recent: list[dict[Cell, int]] = []  # cells the newest keyframes see, with point counts
         self._credit: dict[Cell, float] = defaultdict(float)
         self.observed = ObservedSpace()
+        self.measured = MeasuredSurface(max_depth=cfg.max_depth) if self.sub_cfg.measured else None
+        self._measured_key, self._measured_pts = None, None  # publish.py's points, once per new keyframe
         self.rng = np.random.default_rng(cfg.seed)
         self._steps = 0
         self._since_keyframe = 0
@@ -178,6 +184,8 @@ class SubmapPipeline(SubmapPublishing, SubmapCheckpoints):
         self.frames[frame.key] = prepared
         self._grow_bounds(frame)
         self.observed.add(depth, frame.K, frame.T_WC, self.cfg.max_depth)
+        if self.measured is not None:
+            self.measured.add(depth, frame.K, frame.T_WC)
         if self.grid is None:
             self._waiting.append(prepared)
             self._maybe_make_grid(frame)
@@ -379,7 +387,8 @@ class SubmapPipeline(SubmapPublishing, SubmapCheckpoints):
         masks = sum(v.pixel_mask.nbytes for sm in self.submaps.values() for v in sm.trainer.store.keyframes
                     if v.pixel_mask is not None)
         n_par = sum(p.numel() for sm in self.submaps.values() for p in sm.trainer.net.parameters())
-        return {"keyframes": int(kf + masks), "model": int(3 * 4 * n_par), "observed": int(self.observed.nbytes())}
+        return {"keyframes": int(kf + masks), "model": int(3 * 4 * n_par), "observed": int(self.observed.nbytes()),
+                "measured": 0 if self.measured is None else self.measured.nbytes()}
 
 
 def restore_pipeline(d: dict):

@@ -15,6 +15,8 @@ from __future__ import annotations
 import time
 from typing import TYPE_CHECKING
 
+import numpy as np
+
 from .. import keys, protocol
 from ..pipeline import surfel_map_message
 
@@ -33,13 +35,34 @@ class SubmapPublishing:
             sm.observed_msg, sm.observed_key = (None if g is None else g.to_msg()), key
         return sm.observed_msg
 
+    def _measured_msg(self, sm: Submap) -> dict | None:
+        """The measured points (protocol 1.4) in the submap's extended box, or None when the
+        mapper pools none."""
+        m = self.measured
+        if m is None:
+            return None
+        key = (len(m), int(m.counts.sum()))
+        if self._measured_key != key:  # the points, once per new keyframe
+            self._measured_pts, self._measured_key = m.points(), key
+        pts = self._measured_pts
+        inside = self.grid.inside(sm.cell, pts, grow=self.grid.overlap_m) if len(pts) else np.zeros(0, bool)
+        return {"voxel": m.voxel, "points": pts[inside].astype(np.float32)}
+
+    def measured_points(self) -> np.ndarray:
+        """(M, 3) the union of the measured points every submap publishes (points in overlaps
+        once per submap): what a query service holding the whole map answers with."""
+        msgs = [self._measured_msg(sm) for sm in self.submaps.values()] if self.grid is not None else []
+        pts = [m["points"] for m in msgs if m is not None]
+        return np.concatenate(pts) if pts else np.zeros((0, 3), np.float32)
+
     def submap_snapshot(self, sm: Submap, version: int, epoch: int = 0) -> protocol.WeightSnapshot:
         model = dict(sm.trainer.model_spec())
         c = sm.cell
         model["bounds"] = [self.grid.corners_W(c, self.grid.overlap_m).min(0).tolist(),
                            self.grid.corners_W(c, self.grid.overlap_m).max(0).tolist()]
         return protocol.WeightSnapshot(version, sm.trainer.steps, time.time(), model, sm.trainer.state_numpy(),
-                                       epoch, self._observed_msg(sm), {"id": sm.id, "grid": self.grid.to_msg()})
+                                       epoch, self._observed_msg(sm), {"id": sm.id, "grid": self.grid.to_msg()},
+                                       self._measured_msg(sm))
 
     def index(self, version: int, epoch: int = 0) -> protocol.SubmapIndex:
         return protocol.SubmapIndex(version, time.time(), self.grid.to_msg(),
