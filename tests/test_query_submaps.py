@@ -701,6 +701,7 @@ def test_e2e_real_submap_mapper_answers_planners(tmp_path):
             wait_for(lambda: (lambda i: i.get("submaps") == len(idx.submaps) and i.get("version") == idx.version
                               and i.get("baked_version") == idx.version)(qinfo(s)), 120, period=1.0,
                      what="the query service to hold and bake the final map")
+            assert qinfo(s)["measured_points"] == sum(len(sn.measured["points"]) for sn in snaps.values()) > 0
             e = QueryEngine(device="cpu")
             for snap in snaps.values():
                 assert e.set_submap(snap)

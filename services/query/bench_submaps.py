@@ -56,14 +56,17 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--mesh-resolution", type=float, default=0.1)
     ap.add_argument("--fuse-radius", type=float, default=DEFAULT_FUSE_RADIUS,
                     help="the engine's fuse_radius (m): how far around a changed surfel a re-bake re-evaluates")
+    ap.add_argument("--measured", action=argparse.BooleanOptionalAction, default=True,
+                    help="fused answers with the submaps' measured points (protocol 1.4; --no-measured: 1.3's)")
     args = ap.parse_args(argv)
     torch.set_num_threads(1)
     seq = SyntheticSequence(building=args.building, n_frames=args.frames, H=60, W=80, seed=0)
     p = SubmapPipeline.from_settings("cpu", {"network": {"width": args.width}, "n_rays": 40})
-    e = QueryEngine(device="cpu", bake_threads=1, fuse_radius=args.fuse_radius)
+    e = QueryEngine(device="cpu", bake_threads=1, fuse_radius=args.fuse_radius, measured=args.measured)
     version = 0
     print(f"{args.building}: {args.frames} frames, a keyframe every {args.every}, {args.steps} steps each, "
-          f"published every {args.period} keyframes; width {args.width}")
+          f"published every {args.period} keyframes; width {args.width}; measured points "
+          f"{'on' if args.measured else 'off'}")
     print("| version | keyframes | submaps | changed | blocks | incremental: evaluations / s | full: evaluations / s "
           "| difference: max (m) / share > 2 mm |")
     print("|---|---|---|---|---|---|---|---|")

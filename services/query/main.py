@@ -252,6 +252,7 @@ class QueryNode:
                 "lag": self.engine.lag(), "answered": self.answered, "errors": self.errors, "busy": self.busy,
                 "queued": self._sdf_jobs.qsize(),
                 "submaps": len(st.submaps.submaps) if st is not None and st.submaps is not None else None,
+                "measured_points": len(st.measured) if st is not None and st.measured is not None else 0,
                 "fetched": self.fetched}
 
     def stop(self) -> None:

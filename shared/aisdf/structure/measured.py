@@ -67,14 +67,22 @@ class MeasuredSurface:
             return 0
         P = transform(T, backproject(depth, K)[valid])
         k = pack_keys(np.floor(P / self.voxel).astype(np.int64))
-        # Merge into the held voxels: one unique over held and new keys, sums and counts by group.
-        keys, group = np.unique(np.concatenate([self.keys, k]), return_inverse=True)
+        # This view's voxels (a unique over its own pixels), then merged into the held ones by
+        # binary search: held voxels add in place, new ones are inserted in order (one copy,
+        # not a sort of everything held, which grows with the building).
+        new, group = np.unique(k, return_inverse=True)
         group = group.ravel()
-        sums = np.concatenate([self.sums, P])
-        self.sums = np.stack([np.bincount(group, sums[:, i], minlength=len(keys)) for i in range(3)], axis=1)
-        self.counts = np.bincount(group, np.concatenate([self.counts, np.ones(n, np.int64)]).astype(np.float64),
-                                  minlength=len(keys)).astype(np.int64)
-        self.keys = keys
+        add_s = np.stack([np.bincount(group, P[:, i], minlength=len(new)) for i in range(3)], axis=1)
+        add_c = np.bincount(group, minlength=len(new)).astype(np.int64)
+        i = np.searchsorted(self.keys, new)
+        held = (i < len(self.keys)) & (self.keys[np.minimum(i, max(len(self.keys) - 1, 0))] == new) if len(
+            self.keys) else np.zeros(len(new), bool)
+        self.sums[i[held]] += add_s[held]  # (the input was checked above: nothing below fails half way)
+        self.counts[i[held]] += add_c[held]
+        fresh = ~held
+        self.keys = np.insert(self.keys, i[fresh], new[fresh])
+        self.sums = np.insert(self.sums, i[fresh], add_s[fresh], axis=0)
+        self.counts = np.insert(self.counts, i[fresh], add_c[fresh])
         self._tree = None
         return n
 
