@@ -55,3 +55,28 @@ def test_chomp_cost_values():
     e = 2.0
     np.testing.assert_allclose(chomp_cost(np.array([-1.0, 0.0, 0.5, 2.0, 3.0]), e),
                                [2.0, 1.0, (0.5 - 2) ** 2 / 4, 0.0, 0.0])
+
+
+def test_kdtree_survives_flush_to_zero_on_lattice_points():
+    """``geometry.kdtree`` in a process where ``aisdf.network`` turned flush-to-zero on (as
+    every service does): lattice points (a floor and a box at 0.1 m, which crash scipy's
+    default balanced build there) build and answer nearest-point queries exactly. In a
+    child process: a crash must fail this test, not end the test run."""
+    import subprocess
+    import sys
+
+    code = """
+import numpy as np
+import aisdf.network  # noqa: F401  (turns flush-to-zero on)
+from aisdf.geometry import kdtree
+floor = np.stack(np.meshgrid(np.arange(-1, 1, 0.1), np.arange(-1, 1, 0.1), [0.0], indexing="ij"), -1)
+box = np.stack(np.meshgrid(np.arange(0.2, 0.6, 0.1), np.arange(0.2, 0.6, 0.1), [0.4], indexing="ij"), -1)
+P = np.concatenate([floor.reshape(-1, 3), box.reshape(-1, 3)])
+q = np.random.default_rng(0).uniform(-1, 1, (500, 3))
+d, i = kdtree(P).query(q)
+brute = np.linalg.norm(q[:, None] - P[None], axis=2).min(1)
+assert np.allclose(d, brute), np.abs(d - brute).max()
+print("ok")
+"""
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0 and r.stdout.strip() == "ok", (r.returncode, r.stderr[-2000:])

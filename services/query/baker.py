@@ -46,7 +46,8 @@ def fused_answer(state: MapState, pts: np.ndarray, sdf_i: np.ndarray, grad_i: np
     sdf, grad, _ = fuse(sdf_i, grad_i, d_e, g_e, radius)
     if state.measured is None:
         return sdf, grad
-    d_m, g_m = state.measured.nearest(pts)
+    # A measured point counts within the radius only (measured_fuse_grad), so the search may stop there.
+    d_m, g_m = state.measured.nearest(pts, within=radius)
     f, g = measured_fuse_grad(sdf, grad, sdf_i, d_e, g_e, d_m, g_m if grad is not None else None, radius=radius)
     return f.astype(np.float32), (None if g is None else g.astype(np.float32))
 
@@ -189,7 +190,7 @@ class Baker:
         def dirty(points: np.ndarray) -> np.ndarray:
             d = in_boxes(points, boxes, grow)
             if moved is not None:
-                d |= moved.nearest(points)[0] <= grow  # a measured point counts within fuse_radius
+                d |= np.isfinite(moved.distance(points, within=grow))  # a measured point counts within fuse_radius
             if grid is not None:
                 covered = np.zeros(len(points), bool)
                 for idx in assign(grid, cells, points).values():

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from aisdf.geometry import kdtree
 from aisdf.structure.measured import MeasuredPoints
 from aisdf.structure.surfel_types import Surfels
 
@@ -30,10 +31,8 @@ def surfel_changes(ref: Surfels | None, new: Surfels | None, tol: float = 0.0) -
         return (_surfel_box(ref) if ref is not None and len(ref) else empty), new
     if ref is None or not len(ref):
         return _surfel_box(new), new
-    from scipy.spatial import cKDTree
-
     k = min(4, len(ref))
-    _, nn = cKDTree(ref.center).query(new.center, k=k)
+    _, nn = kdtree(ref.center).query(new.center, k=k)
     nn = nn.reshape(len(new), k)
     r1, r2 = ref.half_axes()
     n1, n2 = new.half_axes()

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from aisdf.geometry import kdtree
+
 
 def tiled_marching_cubes(fn, lo: np.ndarray, res: float, n, tile: int = 64) -> tuple[np.ndarray, np.ndarray]:
     """Marching cubes of the zero level of ``fn`` (points (M, 3) float32 -> (M,)) on the
@@ -49,9 +51,8 @@ def tiled_marching_cubes(fn, lo: np.ndarray, res: float, n, tile: int = 64) -> t
     if len(si):
         from scipy.sparse import coo_matrix
         from scipy.sparse.csgraph import connected_components
-        from scipy.spatial import cKDTree
 
-        pairs = cKDTree(V[si]).query_pairs(1e-4, output_type="ndarray")
+        pairs = kdtree(V[si]).query_pairs(1e-4, output_type="ndarray")
         if len(pairs):
             m = len(si)
             g = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(m, m))

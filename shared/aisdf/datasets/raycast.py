@@ -18,9 +18,8 @@ the ray parameter at the hit is the z-depth.
 from __future__ import annotations
 
 import numpy as np
-from scipy.spatial import cKDTree
 
-from ..geometry import invert, ray_dirs_C, transform
+from ..geometry import invert, kdtree, ray_dirs_C, transform
 
 
 def open3d_available() -> bool:
@@ -216,7 +215,7 @@ class MeshScene:
             first = np.concatenate([[0], np.cumsum(n)[:-1]])
             w[first] = 1.0 / 3.0  # every triangle keeps its centroid
             pts = np.einsum("nk,nkd->nd", w, tri[owner])
-            self._kd = (cKDTree(pts), owner)
+            self._kd = (kdtree(pts), owner)
         return self._kd
 
     def _closest_numpy(self, p, k: int = 8):

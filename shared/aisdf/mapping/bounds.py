@@ -22,8 +22,8 @@ from __future__ import annotations
 
 import numpy as np
 import torch
-from scipy.spatial import cKDTree
 
+from ..geometry import kdtree
 from .sampling import FREE, SURFACE, SURFEL
 
 
@@ -34,7 +34,7 @@ def nearest_index(queries: torch.Tensor, refs: torch.Tensor, method: str = "auto
     if len(refs) == 0 or len(queries) == 0:
         return torch.zeros(len(queries), dtype=torch.long, device=queries.device)
     if method == "kdtree":
-        tree = cKDTree(refs.detach().cpu().numpy().astype(np.float64))
+        tree = kdtree(refs.detach().cpu().numpy().astype(np.float64))
         _, idx = tree.query(queries.detach().cpu().numpy().astype(np.float64), k=1,
                             workers=max(1, torch.get_num_threads()))
         return torch.as_tensor(idx, dtype=torch.long, device=queries.device)

@@ -28,7 +28,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..geometry import backproject, transform
+from ..geometry import backproject, kdtree, transform
 from ..observed import pack_keys
 
 DEFAULT_VOXEL = 0.1
@@ -95,10 +95,8 @@ class MeasuredSurface:
         """(N,) distance from each point to the nearest measured point (inf when none)."""
         points = np.asarray(points, np.float64).reshape(-1, 3)
         if self._tree is None:
-            from scipy.spatial import cKDTree
-
             pts = self.points()
-            self._tree = cKDTree(pts) if len(pts) else False
+            self._tree = kdtree(pts) if len(pts) else False
         if self._tree is False:
             return np.full(len(points), np.inf)
         return self._tree.query(points)[0]
@@ -121,24 +119,30 @@ class MeasuredPoints:
     def __len__(self) -> int:
         return len(self.points)
 
-    def distance(self, q: np.ndarray) -> np.ndarray:
-        """(N,) distance to the nearest point (inf when there is none)."""
-        return self.nearest(q)[0]
+    def distance(self, q: np.ndarray, within: float | None = None) -> np.ndarray:
+        """(N,) distance to the nearest point (inf when there is none, or none within ``within``)."""
+        return self.nearest(q, within)[0]
 
-    def nearest(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def nearest(self, q: np.ndarray, within: float | None = None) -> tuple[np.ndarray, np.ndarray]:
         """(distance (N,), unit direction from the nearest point to the query (N, 3)); inf and
-        zeros when there is no point (or where the query is on a point)."""
+        zeros when there is no point (or where the query is on a point). With ``within``, only
+        points up to that distance are looked for (the search stops early: much faster far
+        from every point); inf beyond."""
         q = np.asarray(q, np.float64).reshape(-1, 3)
         if not len(self.points):
             return np.full(len(q), np.inf), np.zeros((len(q), 3))
         if self._tree is None:
-            from scipy.spatial import cKDTree
-
-            self._tree = cKDTree(self.points)
-        d, i = self._tree.query(q)
-        diff = q - self.points[i]
+            self._tree = kdtree(self.points)
+        if within is None:
+            d, i = self._tree.query(q)
+        else:  # a hair more, so a point at exactly ``within`` is found whatever the bound's test
+            d, i = self._tree.query(q, distance_upper_bound=float(within) * (1 + 1e-9) + 1e-12)
+            d = np.where(d <= within, d, np.inf)
+        found = np.isfinite(d)
+        diff = np.zeros_like(q)
+        diff[found] = q[found] - self.points[i[found]]
         with np.errstate(invalid="ignore", divide="ignore"):
-            g = np.where(d[:, None] > 0, diff / d[:, None], 0.0)
+            g = np.where((d[:, None] > 0) & found[:, None], diff / d[:, None], 0.0)
         return d, g
 
 
