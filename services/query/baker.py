@@ -151,7 +151,12 @@ class Baker:
         t = time.perf_counter()
         dirty, ref = self._dirty(cur, st) if cur is not None else (None, st.surfels)
         previous = cur.field if dirty is not None else None
-        fld = bake(self.fused_fn(st), st.observed, self.config, previous=previous, dirty=dirty)
+        # Every sample with the same surfels: the reference (surfels that moved less than
+        # surfel_tol keep the geometry the reused samples were computed with), so new samples
+        # agree with the reused ones also where a tiny move flips a gate (the fusion radius, the
+        # measured rule's ramp). A full bake of the new surfels differs from it by those moves.
+        fld = bake(self.fused_fn(st if ref is st.surfels else st.with_surfels(ref, st.surfel_version)), st.observed,
+                   self.config, previous=previous, dirty=dirty)
         with self._lock:
             cur = self.baked
             if cur is None or cur.state.order <= st.order:
