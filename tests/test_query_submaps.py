@@ -83,6 +83,24 @@ def index(grid, versions: dict, version, epoch=EPOCH):
                                 {cell_id(c): {"version": v, "step": 100} for c, v in versions.items()}, epoch)
 
 
+def surfel_map(surf: Surfels, version: int = 1) -> protocol.SurfelMap:
+    """The SurfelMap message of ``surf``, as received (encoded and decoded)."""
+    dtypes = {"direction": np.int32, "keyframe": np.int64}
+    smap = protocol.SurfelMap(version, time.time(), np.array([0, 0, 1.0]), np.eye(3)[:1],
+                              {f: getattr(surf, f).astype(dtypes.get(f, np.float32)) for f in (
+                                  "center", "normal", "axis1", "axis2", "extent", "direction", "keyframe")}, EPOCH)
+    return protocol.SurfelMap.from_msg(protocol.unpack(protocol.pack(smap.to_msg())))
+
+
+def assert_same_bake(a, b, pts):
+    """Two baked fields answer the same at ``pts``: coverage, values and gradients."""
+    fa, ga, ca = a.query(pts)
+    fb, gb, cb = b.query(pts)
+    np.testing.assert_array_equal(ca, cb)
+    np.testing.assert_allclose(fa, fb, atol=1e-6)
+    np.testing.assert_allclose(ga, gb, atol=1e-5)
+
+
 @pytest.fixture(scope="module")
 def submap_map():
     seq = SyntheticSequence(building="atlanta", n_frames=120, H=60, W=80, seed=1)
@@ -264,26 +282,18 @@ def test_bake_reevaluates_only_what_changed_and_equals_a_full_bake(submap_map):
     p0 = m["centres"][len(m["centres"]) // 2]
     surf = Surfels(center=[p0], normal=[[1.0, 0, 0]], axis1=[[0, 1.0, 0]], axis2=[[0, 0, 1.0]], extent=[[0.4, 0.4]],
                    direction=[0], keyframe=[0])
-    dtypes = {"direction": np.int32, "keyframe": np.int64}
-    smap = protocol.SurfelMap(1, time.time(), np.array([0, 0, 1.0]), np.eye(3)[:1],
-                              {f: getattr(surf, f).astype(dtypes.get(f, np.float32)) for f in (
-                                  "center", "normal", "axis1", "axis2", "extent", "direction", "keyframe")}, EPOCH)
-    assert e.set_surfels(protocol.SurfelMap.from_msg(protocol.unpack(protocol.pack(smap.to_msg()))))
+    smap = surfel_map(surf)
+    assert e.set_surfels(smap)
     third = e.bake_now().field
     assert 0 < third.stats["evaluations"] < 0.5 * full_evals, third.stats
     # The incremental bake is the full bake of the same map.
     f2 = QueryEngine(device="cpu", fuse_radius=0.5)
     for cc in CELLS:
         f2.set_submap(snap2 if cc == c else m["snaps"][cc])
-    f2.set_surfels(protocol.SurfelMap.from_msg(protocol.unpack(protocol.pack(smap.to_msg()))))
+    f2.set_surfels(smap)
     ref = f2.bake_now().field
     assert ref.stats["reused"] == 0
-    pts = band_points(m, 20_000, np.random.default_rng(3))
-    fa, ga, ca = third.query(pts)
-    fb, gb, cb = ref.query(pts)
-    np.testing.assert_array_equal(ca, cb)
-    np.testing.assert_allclose(fa, fb, atol=1e-6)
-    np.testing.assert_allclose(ga, gb, atol=1e-5)
+    assert_same_bake(third, ref, band_points(m, 20_000, np.random.default_rng(3)))
     # Only the index's version moving on: no evaluation, the same bake answers for the new version.
     e.set_index(index(m["grid"], {cc: (2 if cc == c else 1) for cc in CELLS}, 9))
     bk = e.bake_now()
@@ -441,24 +451,15 @@ def test_measured_points_1_4_answers_bake_and_the_1_3_answer(submap_map):
         assert ref.set_submap(snap2 if cc == c else snaps[cc])
     full = ref.bake_now().field
     q = band_points(m, 20_000, np.random.default_rng(6))
-    fa, ga, ca = second.query(q)
-    fb, gb, cb = full.query(q)
-    np.testing.assert_array_equal(ca, cb)
-    np.testing.assert_allclose(fa, fb, atol=1e-6)
-    np.testing.assert_allclose(ga, gb, atol=1e-5)
+    assert_same_bake(second, full, q)
     # With surfels that move less than bake_surfel_tol (as every refinement of the Atlanta
     # frame moves them all a little) while a submap changes: the re-bake keeps the surfels'
     # baked geometry (its reference) for its new samples too, so it is the full bake with
     # that reference, though the rule's ramp makes answers sensitive to such moves.
     def wall(dx, version):
         p0 = far + np.array([0.3 + dx, 0.0, 0.0])
-        surf = Surfels(center=[p0], normal=[[-1.0, 0, 0]], axis1=[[0, 1.0, 0]], axis2=[[0, 0, 1.0]],
-                       extent=[[2.0, 2.0]], direction=[0], keyframe=[0])
-        dt = {"direction": np.int32, "keyframe": np.int64}
-        msg = protocol.SurfelMap(version, time.time(), np.array([0, 0, 1.0]), np.eye(3)[:1], {f: getattr(surf, f).astype(
-            dt.get(f, np.float32)) for f in ("center", "normal", "axis1", "axis2", "extent", "direction", "keyframe")},
-            EPOCH)
-        return protocol.SurfelMap.from_msg(protocol.unpack(protocol.pack(msg.to_msg())))
+        return surfel_map(Surfels(center=[p0], normal=[[-1.0, 0, 0]], axis1=[[0, 1.0, 0]], axis2=[[0, 0, 1.0]],
+                                  extent=[[2.0, 2.0]], direction=[0], keyframe=[0]), version)
 
     assert e.set_surfels(wall(0.0, 1))
     e.bake_now()
@@ -470,11 +471,7 @@ def test_measured_points_1_4_answers_bake_and_the_1_3_answer(submap_map):
     for cc in CELLS:
         assert ref2.set_submap(snap3 if cc == c else snaps[cc])
     ref2.set_surfels(wall(0.0, 1))
-    fc, gc, cc_ = third.field.query(q)
-    fd, gd, cd = ref2.bake_now().field.query(q)
-    np.testing.assert_array_equal(cc_, cd)
-    np.testing.assert_allclose(fc, fd, atol=1e-6)
-    np.testing.assert_allclose(gc, gd, atol=1e-5)
+    assert_same_bake(third.field, ref2.bake_now().field, q)
 
 
 # ----------------------------------------------------------------------------- meshes

@@ -48,7 +48,7 @@ class MeasuredSurface:
         self.keys = np.zeros(0, np.int64)  # sorted, unique
         self.sums = np.zeros((0, 3), np.float64)
         self.counts = np.zeros(0, np.int64)
-        self._tree = None
+        self._points: MeasuredPoints | None = None
 
     def __len__(self) -> int:
         return len(self.keys)
@@ -75,15 +75,16 @@ class MeasuredSurface:
         add_s = np.stack([np.bincount(group, P[:, i], minlength=len(new)) for i in range(3)], axis=1)
         add_c = np.bincount(group, minlength=len(new)).astype(np.int64)
         i = np.searchsorted(self.keys, new)
-        held = (i < len(self.keys)) & (self.keys[np.minimum(i, max(len(self.keys) - 1, 0))] == new) if len(
-            self.keys) else np.zeros(len(new), bool)
+        held = np.zeros(len(new), bool)
+        if len(self.keys):  # (an index past the end meets the last key, which is smaller)
+            held = self.keys[np.minimum(i, len(self.keys) - 1)] == new
         self.sums[i[held]] += add_s[held]  # (the input was checked above: nothing below fails half way)
         self.counts[i[held]] += add_c[held]
         fresh = ~held
         self.keys = np.insert(self.keys, i[fresh], new[fresh])
         self.sums = np.insert(self.sums, i[fresh], add_s[fresh], axis=0)
         self.counts = np.insert(self.counts, i[fresh], add_c[fresh])
-        self._tree = None
+        self._points = None
         return n
 
     def points(self) -> np.ndarray:
@@ -93,13 +94,9 @@ class MeasuredSurface:
 
     def distance(self, points: np.ndarray) -> np.ndarray:
         """(N,) distance from each point to the nearest measured point (inf when none)."""
-        points = np.asarray(points, np.float64).reshape(-1, 3)
-        if self._tree is None:
-            pts = self.points()
-            self._tree = kdtree(pts) if len(pts) else False
-        if self._tree is False:
-            return np.full(len(points), np.inf)
-        return self._tree.query(points)[0]
+        if self._points is None:  # built once per change
+            self._points = MeasuredPoints(self.points())
+        return self._points.distance(points)
 
     def nbytes(self) -> int:
         return int(self.keys.nbytes + self.sums.nbytes + self.counts.nbytes)
