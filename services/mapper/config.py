@@ -8,7 +8,7 @@ from typing import Any, Literal
 from pydantic import Field
 
 from aisdf.config import ServiceConfig
-from aisdf.submaps.pipeline import SubmapConfig
+from aisdf.submaps.config import SubmapConfig
 
 
 class MapperConfig(ServiceConfig):

@@ -56,7 +56,8 @@ class SubmapCheckpoints:
         if int(d.get("version", 0)) > CHECKPOINT_VERSION:
             raise ValueError(f"checkpoint version {d['version']} is newer than this build's {CHECKPOINT_VERSION}")
         from ..mapping.config import TrainingConfig
-        from .pipeline import Submap, SubmapConfig
+        from .config import SubmapConfig
+        from .pipeline import Submap
 
         p = cls(TrainingConfig.model_validate(d["config"]), atlanta=d["atlanta"],
                 submaps=SubmapConfig.model_validate(d["submap_config"]), atlanta_state=d.get("structure"))
