@@ -104,7 +104,9 @@ def union_observed(grids: list[ObservedGrid], align: float) -> ObservedGrid | No
 
 
 def union_measured(submaps) -> MeasuredPoints | None:
-    """The measured points of all ``submaps`` that carry some (points in overlaps come once
-    per submap: the nearest distance does not mind), or None when none does."""
+    """The measured points of all ``submaps`` that carry some, or None when none does. A
+    point in an overlap comes from each submap holding it, equal bit for bit when they were
+    published from the same pool: such copies are kept once (the same distances, and a
+    search among a third fewer points, on the floor)."""
     held = [s.measured for s in submaps if s.measured is not None]
-    return MeasuredPoints(np.concatenate(held)) if held else None
+    return MeasuredPoints(np.unique(np.concatenate(held), axis=0)) if held else None

@@ -87,7 +87,7 @@ def normals_from_depth(depth: np.ndarray, K: np.ndarray, max_jump: float = 0.1) 
     return n
 
 
-def kdtree(points: np.ndarray):
+def kdtree(points: np.ndarray, leafsize: int = 16):
     """A ``scipy.spatial.cKDTree`` of (N, k) points, built with the sliding-midpoint rule
     (``balanced_tree=False``). Why: ``aisdf.network`` turns on flush-to-zero / denormals-
     are-zero (``torch.set_flush_denormal``) in every process that imports it, and threads
@@ -99,4 +99,4 @@ def kdtree(points: np.ndarray):
     midpoint also builds faster; queries answer the same."""
     from scipy.spatial import cKDTree
 
-    return cKDTree(points, balanced_tree=False)
+    return cKDTree(points, leafsize=leafsize, balanced_tree=False)

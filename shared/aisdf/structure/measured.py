@@ -120,20 +120,23 @@ class MeasuredPoints:
         """(N,) distance to the nearest point (inf when there is none, or none within ``within``)."""
         return self.nearest(q, within)[0]
 
-    def nearest(self, q: np.ndarray, within: float | None = None) -> tuple[np.ndarray, np.ndarray]:
+    def nearest(self, q: np.ndarray, within: float | None = None,
+                workers: int = 1) -> tuple[np.ndarray, np.ndarray]:
         """(distance (N,), unit direction from the nearest point to the query (N, 3)); inf and
         zeros when there is no point (or where the query is on a point). With ``within``, only
         points up to that distance are looked for (the search stops early: much faster far
-        from every point); inf beyond."""
+        from every point); inf beyond. ``workers``: threads of the search (scipy's)."""
         q = np.asarray(q, np.float64).reshape(-1, 3)
         if not len(self.points):
             return np.full(len(q), np.inf), np.zeros((len(q), 3))
         if self._tree is None:
-            self._tree = kdtree(self.points)
+            # Leaves of 64: searches up to the 2 m radius in a cloud of surfaces visit many
+            # leaves; bigger ones cost ~35 % less there (scipy's default is 16).
+            self._tree = kdtree(self.points, leafsize=64)
         if within is None:
-            d, i = self._tree.query(q)
+            d, i = self._tree.query(q, workers=workers)
         else:  # a hair more, so a point at exactly ``within`` is found whatever the bound's test
-            d, i = self._tree.query(q, distance_upper_bound=float(within) * (1 + 1e-9) + 1e-12)
+            d, i = self._tree.query(q, distance_upper_bound=float(within) * (1 + 1e-9) + 1e-12, workers=workers)
             d = np.where(d <= within, d, np.inf)
         found = np.isfinite(d)
         diff = np.zeros_like(q)
