@@ -353,6 +353,37 @@ def test_surfel_moves_below_the_tolerance_keep_samples_and_never_add_up():
     assert len(surfel_changes(s0, surfels(0.0)[[1]], 0.001)[0]) == 1  # one gone
 
 
+def test_a_changed_surfel_dirties_only_where_it_is_or_was_the_nearest():
+    """surfel_dirty: wherever the nearest surfel within the fusion radius (distance, sign,
+    direction) differs between the reference and the new surfels, the point is dirty; and a
+    wall grown by 1 m dirties far less than its box grown by the radius (what a re-bake
+    re-evaluates)."""
+    from aisdf.structure.surfel_map import explicit_sdf
+    from aisdf_query.changes import in_boxes, surfel_changes, surfel_dirty
+
+    def room(wall_len, table_x):
+        return Surfels(center=[[0, 2, 1.5], [0, -2, 1.5], [3, 0, 1.5], [-3, 0, 1.5], [0, 0, 0], [table_x, 0, 0.8]],
+                        normal=[[0, -1, 0], [0, 1, 0], [-1, 0, 0], [1, 0, 0], [0, 0, 1], [0, 0, 1]],
+                        axis1=[[1, 0, 0], [1, 0, 0], [0, 1, 0], [0, 1, 0], [1, 0, 0], [1, 0, 0]],
+                        axis2=[[0, 0, 1], [0, 0, 1], [0, 0, 1], [0, 0, 1], [0, 1, 0], [0, 1, 0]],
+                        extent=[[wall_len, 3], [6, 3], [4, 3], [4, 3], [6, 4], [1, 0.6]],
+                        direction=[1, 1, 0, 0, -1, -1], keyframe=[0] * 6)
+
+    ref, new = room(5.0, 1.0), room(6.0, 1.3)  # a wall grown by 1 m, a table moved by 30 cm
+    grow = 2.05
+    dirty, out = surfel_dirty(ref, new, 0.001, grow)
+    assert len(out) == 6
+    pts = np.random.default_rng(5).uniform([-4, -3, -0.5], [4, 3, 3.5], (40_000, 3))
+    d_old, g_old, _ = explicit_sdf(pts, ref)
+    d_new, g_new, _ = explicit_sdf(pts, out)
+    used = (np.abs(d_old) <= 2.0) | (np.abs(d_new) <= 2.0)  # the fused answer uses them (radius 2 m)
+    differs = used & ((np.abs(d_old - d_new) > 1e-9) | (np.abs(g_old - g_new).max(axis=1) > 1e-9))
+    d = dirty(pts)
+    assert differs.any() and not (differs & ~d).any()  # every point whose surfel answer changed
+    boxed = in_boxes(pts, surfel_changes(ref, new, 0.001)[0], grow)  # the changed surfels' boxes, grown
+    assert d.mean() < 0.6 * boxed.mean(), (d.mean(), boxed.mean())
+
+
 def test_submap_ordering_epochs_and_bad_snapshots(submap_map):
     m = submap_map
     e = engine_of(m)

@@ -25,9 +25,9 @@ from aisdf.baked import BakeConfig, BakedField, bake
 from aisdf.structure.fusion import DEFAULT_FUSE_RADIUS, fuse
 from aisdf.structure.measured import measured_fuse_grad
 from aisdf.structure.surfel_types import Surfels
-from aisdf.submaps.field import assign
+from aisdf.submaps.field import covering
 
-from .changes import in_boxes, measured_changes, surfel_changes
+from .changes import measured_changes, surfel_dirty
 from .mapstate import MapState
 
 log = logging.getLogger(__name__)
@@ -35,19 +35,21 @@ BAKE_CHUNK = 2048  # network points per pass while baking: bounds the activation
 
 
 def fused_answer(state: MapState, pts: np.ndarray, sdf_i: np.ndarray, grad_i: np.ndarray | None,
-                 d_e: np.ndarray | None, g_e: np.ndarray | None, radius: float) -> tuple[np.ndarray, np.ndarray | None]:
+                 d_e: np.ndarray | None, g_e: np.ndarray | None, radius: float,
+                 workers: int = 1) -> tuple[np.ndarray, np.ndarray | None]:
     """What ``fused`` answers, from the map's implicit answer and the surfel distance at
     ``pts`` (None: no surfels): ``fusion.fuse`` (the paper's Sec. IV-D, within ``radius``),
     and where the map carries measured points (protocol 1.4) the measured-surface rule on
     top (``structure.measured.measured_fuse_grad``: the surfel distance where nothing was
-    measured nearer, capped at the nearest measured point)."""
+    measured nearer, capped at the nearest measured point). ``workers``: threads of the
+    nearest-point search."""
     if d_e is None:
         d_e, g_e = np.full(len(sdf_i), np.inf, np.float32), np.zeros((len(sdf_i), 3), np.float32)
     sdf, grad, _ = fuse(sdf_i, grad_i, d_e, g_e, radius)
     if state.measured is None:
         return sdf, grad
     # A measured point counts within the radius only (measured_fuse_grad), so the search may stop there.
-    d_m, g_m = state.measured.nearest(pts, within=radius)
+    d_m, g_m = state.measured.nearest(pts, within=radius, workers=workers)
     f, g = measured_fuse_grad(sdf, grad, sdf_i, d_e, g_e, d_m, g_m if grad is not None else None, radius=radius)
     return f.astype(np.float32), (None if g is None else g.astype(np.float32))
 
@@ -128,9 +130,9 @@ class Baker:
             if explicit is not None:
                 d_e, g_e, _ = explicit(pts.astype(np.float64))
                 sdf, grad = fused_answer(state, pts, sdf, grad, d_e.astype(np.float32), g_e.astype(np.float32),
-                                         self.fuse_radius)
+                                         self.fuse_radius, workers=self.threads)
             elif state.measured is not None:
-                sdf, grad = fused_answer(state, pts, sdf, grad, None, None, self.fuse_radius)
+                sdf, grad = fused_answer(state, pts, sdf, grad, None, None, self.fuse_radius, workers=self.threads)
             return sdf, grad
 
         return fn
@@ -188,21 +190,17 @@ class Baker:
             if not old.submaps.grid.same_as(new.submaps.grid):
                 return None, new.surfels
             changed, grid, cells = new.submaps.changed_since(old.submaps), new.submaps.grid, set(new.submaps.submaps)
-        boxes, ref = surfel_changes(baked.surfel_ref, new.surfels, self.surfel_tol)
         grow = self.fuse_radius + 0.05
+        near_changed_surfel, ref = surfel_dirty(baked.surfel_ref, new.surfels, self.surfel_tol, grow)
         moved = measured_changes(old.submaps, new.submaps, changed) if grid is not None else None
 
         def dirty(points: np.ndarray) -> np.ndarray:
-            d = in_boxes(points, boxes, grow)
+            d = near_changed_surfel(points)
             if moved is not None:
                 d |= np.isfinite(moved.distance(points, within=grow))  # a measured point counts within fuse_radius
             if grid is not None:
-                covered = np.zeros(len(points), bool)
-                for idx in assign(grid, cells, points).values():
-                    covered[idx] = True
-                d |= ~covered  # answered by the nearest submap: depends on the whole set
-                for idx in assign(grid, changed, points).values():
-                    d[idx] = True
+                covered, touched = covering(grid, (cells, changed), points)
+                d |= ~covered | touched  # not covered: answered by the nearest submap, which depends on the whole set
             return d
 
         return dirty, ref

@@ -1,11 +1,15 @@
 """What changed between two maps, for a bake that recomputes only that: the surfels that
-moved (:func:`surfel_changes`) and the points near changed boxes (:func:`in_boxes`)."""
+moved (:func:`surfel_diff`) and the points whose nearest surfel may be one of them
+(:func:`surfel_dirty`), the measured points that moved (:func:`measured_changes`)."""
 
 from __future__ import annotations
+
+from collections.abc import Callable
 
 import numpy as np
 
 from aisdf.geometry import kdtree
+from aisdf.observed import pack_keys
 from aisdf.structure.measured import MeasuredPoints
 from aisdf.structure.surfel_types import Surfels
 
@@ -17,20 +21,21 @@ def _surfel_box(s: Surfels) -> np.ndarray:
     return np.stack([s.center - half, s.center + half], axis=1)
 
 
-def surfel_changes(ref: Surfels | None, new: Surfels | None, tol: float = 0.0) -> tuple[np.ndarray, Surfels | None]:
+def surfel_diff(ref: Surfels | None, new: Surfels | None,
+                tol: float = 0.0) -> tuple[Surfels, Surfels, Surfels | None]:
     """Which surfels changed between ``ref`` (the surfels the previous bake's samples were
-    computed with) and ``new``: (boxes (K, 2, 3) of the changed ones, old and new
-    geometry, the new reference). A surfel of ``new`` is unchanged when one of ``ref``
-    (nearest centre, same direction, matched once) lies within ``tol`` of it: no point of
-    the rectangle moved more than ``tol`` (centre move plus the moves of its half axes), so
-    no distance to it changed more than that. An unchanged surfel keeps its reference
-    geometry (so small moves never add up unnoticed: a sample is at most 2 tol off); a
-    changed or new one takes its new geometry, a gone one leaves the reference."""
-    empty = np.zeros((0, 2, 3))
+    computed with) and ``new``: (changed: the changed ones' new geometry, then their old one
+    (gone ones included); kept: the unchanged ones, in their reference geometry; the new
+    reference). A surfel of ``new`` is unchanged when one of ``ref`` (nearest centre, same
+    direction, matched once) lies within ``tol`` of it: no point of the rectangle moved more
+    than ``tol`` (centre move plus the moves of its half axes), so no distance to it changed
+    more than that. An unchanged surfel keeps its reference geometry (so small moves never
+    add up unnoticed: a sample is at most 2 tol off); a changed or new one takes its new
+    geometry, a gone one leaves the reference."""
     if new is None or not len(new):
-        return (_surfel_box(ref) if ref is not None and len(ref) else empty), new
+        return (ref if ref is not None else Surfels()), Surfels(), new
     if ref is None or not len(ref):
-        return _surfel_box(new), new
+        return new, Surfels(), new
     k = min(4, len(ref))
     _, nn = kdtree(ref.center).query(new.center, k=k)
     nn = nn.reshape(len(new), k)
@@ -55,9 +60,48 @@ def surfel_changes(ref: Surfels | None, new: Surfels | None, tol: float = 0.0) -
             else:
                 taken[match[i]] = True
     same = match >= 0
-    boxes = [_surfel_box(new[~same]), _surfel_box(ref[~taken])]
-    out = Surfels.concat([ref[match[same]], new[~same]])
-    return np.concatenate(boxes), out
+    kept = ref[match[same]]
+    return Surfels.concat([new[~same], ref[~taken]]), kept, Surfels.concat([kept, new[~same]])
+
+
+def surfel_changes(ref: Surfels | None, new: Surfels | None, tol: float = 0.0) -> tuple[np.ndarray, Surfels | None]:
+    """``surfel_diff`` as (boxes (K, 2, 3) of the changed surfels, old and new geometry, the
+    new reference)."""
+    changed, _, out = surfel_diff(ref, new, tol)
+    return (_surfel_box(changed) if len(changed) else np.zeros((0, 2, 3))), out
+
+
+def surfel_dirty(ref: Surfels | None, new: Surfels | None, tol: float, grow: float,
+                 eps: float = 1e-3) -> tuple[Callable[[np.ndarray], np.ndarray], Surfels | None]:
+    """(points (M, 3) -> (M,) bool: where the surfel distance the fused field uses may differ
+    between ``ref`` and ``new`` (``surfel_diff``), the new reference). The fused answer uses
+    the distance to the nearest surfel, and only within the fusion radius (``grow`` is that
+    radius plus a margin), so a point is dirty only when a changed surfel (its old or new
+    geometry) is within ``grow`` of it and no farther than the nearest kept surfel (+
+    ``eps``, beyond the float32 screening of ``ExplicitSdf``): elsewhere the same kept
+    surfel is the nearest before and after. A box test screens first."""
+    from aisdf.structure.surfel_map import ExplicitSdf
+
+    changed, kept, out = surfel_diff(ref, new, tol)
+    if not len(changed):
+        return (lambda points: np.zeros(len(points), bool)), out
+    boxes = _surfel_box(changed)
+    to_changed = ExplicitSdf(changed)
+    to_kept = ExplicitSdf(kept) if len(kept) else None
+
+    def dirty(points: np.ndarray) -> np.ndarray:
+        p = np.asarray(points, np.float64).reshape(-1, 3)
+        d = in_boxes(p, boxes, grow)
+        idx = np.flatnonzero(d)
+        if len(idx):
+            dc = np.abs(to_changed(p[idx])[0])
+            d[idx] = dc <= grow
+            idx, dc = idx[dc <= grow], dc[dc <= grow]
+            if to_kept is not None and len(idx):
+                d[idx] = dc <= np.abs(to_kept(p[idx])[0]) + eps
+        return d
+
+    return dirty, out
 
 
 def in_boxes(points: np.ndarray, boxes: np.ndarray, grow: float, cell: float = 1.0) -> np.ndarray:
@@ -69,9 +113,10 @@ def in_boxes(points: np.ndarray, boxes: np.ndarray, grow: float, cell: float = 1
         return out
     lo, hi = boxes[:, 0] - grow, boxes[:, 1] + grow
     cells = np.floor(p / cell).astype(np.int64)
-    uc, inv = np.unique(cells, axis=0, return_inverse=True)
-    order = np.argsort(inv.reshape(-1), kind="stable")
-    bounds = np.searchsorted(inv.reshape(-1)[order], np.arange(len(uc) + 1))
+    key = pack_keys(cells)  # one sort of int64 keys groups the points by cell
+    order = np.argsort(key, kind="stable")
+    bounds = np.flatnonzero(np.r_[True, key[order][1:] != key[order][:-1], True])
+    uc = cells[order[bounds[:-1]]]
     clo, chi = uc * cell, (uc + 1) * cell
     for n in range(len(uc)):  # boxes meeting this cell, then its points
         meet = np.all((lo <= chi[n]) & (hi >= clo[n]), axis=1)

@@ -44,6 +44,24 @@ def assign(grid: SubmapGrid, cells, points_W: np.ndarray) -> dict[tuple[int, int
     return {c: np.sort(np.concatenate(v)) for c, v in out.items()}
 
 
+def covering(grid: SubmapGrid, cell_sets, points_W: np.ndarray) -> list[np.ndarray]:
+    """For each set of cells in ``cell_sets``, (N,) bool: the points inside the extended box
+    of one of its cells (``assign``'s membership, in one pass over the points and without
+    grouping them per cell)."""
+    p = np.asarray(points_W, np.float64).reshape(-1, 3)
+    haves = [np.sort(pack_cells(np.asarray(list(cs), np.int64).reshape(-1, 3))) for cs in cell_sets]
+    outs = [np.zeros(len(p), bool) for _ in haves]
+    if not len(p) or not any(len(h) for h in haves):
+        return outs
+    for idx, near in grid.grown_cells(grid.to_grid(p), grid.overlap_m):
+        k = pack_cells(near)
+        for have, out in zip(haves, outs):
+            if len(have):
+                pos = np.minimum(np.searchsorted(have, k), len(have) - 1)
+                out[idx[have[pos] == k]] = True
+    return outs
+
+
 def nearest_cell(grid: SubmapGrid, cells, points_W: np.ndarray) -> list[tuple[int, int, int]]:
     """For each point, the cell among ``cells`` whose core box is nearest (grid metric)."""
     cells = list(cells)
