@@ -26,7 +26,7 @@ demo: setup
 	$(VENV)/bin/aisdf demo $(ARGS)
 
 test: setup
-	$(VENV)/bin/pytest -q $(ARGS)
+	$(VENV)/bin/pytest -q --durations=12 $(ARGS)
 
 compose-test: setup
 	$(PY) tests/run_compose_test.py $(ARGS)
