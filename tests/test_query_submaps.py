@@ -332,7 +332,7 @@ def test_answers_equal_the_submap_mappers_own_blend():
 
 
 def test_surfel_moves_below_the_tolerance_keep_samples_and_never_add_up():
-    from aisdf_query.changes import surfel_changes
+    from aisdf_query.changes import surfel_diff
 
     def surfels(dx):
         return Surfels(center=[[dx, 0, 1.0], [2, 0, 1]], normal=[[1.0, 0, 0], [0, 1.0, 0]],
@@ -340,17 +340,17 @@ def test_surfel_moves_below_the_tolerance_keep_samples_and_never_add_up():
                        direction=[0, 1], keyframe=[0, 1])
 
     s0 = surfels(0.0)
-    boxes, ref = surfel_changes(s0, surfels(0.0004), 0.001)
-    assert len(boxes) == 0 and ref.center[0, 0] == 0.0  # unchanged: the reference stays
-    boxes, ref = surfel_changes(ref, surfels(0.0008), 0.001)
-    assert len(boxes) == 0 and ref.center[0, 0] == 0.0
-    boxes, ref = surfel_changes(ref, surfels(0.0012), 0.001)  # 1.2 mm from what was baked
-    assert len(boxes) == 2 and sorted(ref.center[:, 0]) == [0.0012, 2.0]
-    assert len(surfel_changes(s0, surfels(1e-6), 0.0)[0]) == 2  # no tolerance: any move
+    changed, _, ref = surfel_diff(s0, surfels(0.0004), 0.001)
+    assert len(changed) == 0 and ref.center[0, 0] == 0.0  # unchanged: the reference stays
+    changed, _, ref = surfel_diff(ref, surfels(0.0008), 0.001)
+    assert len(changed) == 0 and ref.center[0, 0] == 0.0
+    changed, _, ref = surfel_diff(ref, surfels(0.0012), 0.001)  # 1.2 mm from what was baked
+    assert len(changed) == 2 and sorted(ref.center[:, 0]) == [0.0012, 2.0]
+    assert len(surfel_diff(s0, surfels(1e-6), 0.0)[0]) == 2  # no tolerance: any move
     flipped = surfels(0.0)
     flipped.normal[0] *= -1  # the other side of the wall: another surface
-    assert len(surfel_changes(s0, flipped, 0.001)[0]) == 2
-    assert len(surfel_changes(s0, surfels(0.0)[[1]], 0.001)[0]) == 1  # one gone
+    assert len(surfel_diff(s0, flipped, 0.001)[0]) == 2
+    assert len(surfel_diff(s0, surfels(0.0)[[1]], 0.001)[0]) == 1  # one gone
 
 
 def test_a_changed_surfel_dirties_only_where_it_is_or_was_the_nearest():
@@ -359,7 +359,7 @@ def test_a_changed_surfel_dirties_only_where_it_is_or_was_the_nearest():
     wall grown by 1 m dirties far less than its box grown by the radius (what a re-bake
     re-evaluates)."""
     from aisdf.structure.surfel_map import explicit_sdf
-    from aisdf_query.changes import in_boxes, surfel_changes, surfel_dirty
+    from aisdf_query.changes import in_boxes, surfel_boxes, surfel_diff, surfel_dirty
 
     def room(wall_len, table_x):
         return Surfels(center=[[0, 2, 1.5], [0, -2, 1.5], [3, 0, 1.5], [-3, 0, 1.5], [0, 0, 0], [table_x, 0, 0.8]],
@@ -380,7 +380,7 @@ def test_a_changed_surfel_dirties_only_where_it_is_or_was_the_nearest():
     differs = used & ((np.abs(d_old - d_new) > 1e-9) | (np.abs(g_old - g_new).max(axis=1) > 1e-9))
     d = dirty(pts)
     assert differs.any() and not (differs & ~d).any()  # every point whose surfel answer changed
-    boxed = in_boxes(pts, surfel_changes(ref, new, 0.001)[0], grow)  # the changed surfels' boxes, grown
+    boxed = in_boxes(pts, surfel_boxes(surfel_diff(ref, new, 0.001)[0]), grow)  # the changed surfels' boxes, grown
     assert d.mean() < 0.6 * boxed.mean(), (d.mean(), boxed.mean())
 
 

@@ -14,7 +14,7 @@ from aisdf.structure.measured import MeasuredPoints
 from aisdf.structure.surfel_types import Surfels
 
 
-def _surfel_box(s: Surfels) -> np.ndarray:
+def surfel_boxes(s: Surfels) -> np.ndarray:
     """(N, 2, 3) world boxes of the rectangles."""
     h1, h2 = s.half_axes()
     half = np.abs(h1) + np.abs(h2)
@@ -64,13 +64,6 @@ def surfel_diff(ref: Surfels | None, new: Surfels | None,
     return Surfels.concat([new[~same], ref[~taken]]), kept, Surfels.concat([kept, new[~same]])
 
 
-def surfel_changes(ref: Surfels | None, new: Surfels | None, tol: float = 0.0) -> tuple[np.ndarray, Surfels | None]:
-    """``surfel_diff`` as (boxes (K, 2, 3) of the changed surfels, old and new geometry, the
-    new reference)."""
-    changed, _, out = surfel_diff(ref, new, tol)
-    return (_surfel_box(changed) if len(changed) else np.zeros((0, 2, 3))), out
-
-
 def surfel_dirty(ref: Surfels | None, new: Surfels | None, tol: float, grow: float,
                  eps: float = 1e-3) -> tuple[Callable[[np.ndarray], np.ndarray], Surfels | None]:
     """(points (M, 3) -> (M,) bool: where the surfel distance the fused field uses may differ
@@ -85,7 +78,7 @@ def surfel_dirty(ref: Surfels | None, new: Surfels | None, tol: float, grow: flo
     changed, kept, out = surfel_diff(ref, new, tol)
     if not len(changed):
         return (lambda points: np.zeros(len(points), bool)), out
-    boxes = _surfel_box(changed)
+    boxes = surfel_boxes(changed)
     to_changed = ExplicitSdf(changed)
     to_kept = ExplicitSdf(kept) if len(kept) else None
 
@@ -95,8 +88,9 @@ def surfel_dirty(ref: Surfels | None, new: Surfels | None, tol: float, grow: flo
         idx = np.flatnonzero(d)
         if len(idx):
             dc = np.abs(to_changed(p[idx])[0])
-            d[idx] = dc <= grow
-            idx, dc = idx[dc <= grow], dc[dc <= grow]
+            near = dc <= grow
+            d[idx] = near
+            idx, dc = idx[near], dc[near]
             if to_kept is not None and len(idx):
                 d[idx] = dc <= np.abs(to_kept(p[idx])[0]) + eps
         return d
