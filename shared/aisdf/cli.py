@@ -27,7 +27,7 @@ def _bench_query(args) -> None:
 
     res = run(out=args.out, sizes=args.sizes, repeats=args.repeats, threads=args.threads, bake_threads=args.bake_threads,
               train_steps=args.train_steps, planners=args.planners, planner_s=args.planner_s, lag_s=args.lag_s,
-              n_eval=args.eval_points)
+              n_eval=args.eval_points, mapper=args.mapper)
     print(report(res))
 
 
@@ -93,7 +93,11 @@ def main(argv: list[str] | None = None) -> None:
     q.add_argument("--threads", type=int, help="torch threads per evaluation, in the service and in-process "
                    "(default 1, the service's)")
     q.add_argument("--bake-threads", type=int, default=2, help="threads evaluating the network while baking")
-    q.add_argument("--train-steps", type=int, default=900, help="training steps of the demo map (default 900)")
+    q.add_argument("--mapper", choices=["submaps", "single"], default="submaps",
+                   help="the map's mapper: a network per submap with measured points (the service's default; "
+                   "fused answers are protocol 1.4's) or one network (1.3's fused answer)")
+    q.add_argument("--train-steps", type=int, help="training steps of the demo map (default 1200 with submaps, "
+                   "900 with one network: about what the demo's mapper makes in 180 s)")
     q.add_argument("--planners", type=int, default=8)
     q.add_argument("--planner-s", type=float, default=60.0, help="seconds of the concurrent-planners run")
     q.add_argument("--lag-s", type=float, default=30.0, help="seconds of the 1 Hz lag run")

@@ -3,7 +3,10 @@ building's map.
 
 1. The map: the demo's synthetic ``office`` building, camera path and keyframe selection,
    trained in-process with the ``cpu`` preset for ``--train-steps`` steps (the demo's
-   mapper makes about as many in its 180 s); cached in ``--out`` so a rerun skips it.
+   mapper makes about as many in its 180 s); cached in ``--out`` so a rerun skips it. By
+   default the mapper the service runs by default (``--mapper submaps``: a network per
+   submap, with measured points, so ``fused`` answers are protocol 1.4's); ``--mapper
+   single``: one network (1.3's fused answer, the bench's map before 2026-12-03).
 2. The bake: wall time and memory (the baked arrays, and the process's peak resident
    memory growth during the bake, measured in a fresh process).
 3. Accuracy on the demo's 200,000 evaluation points (along seen rays, iSDF's protocol):
@@ -20,7 +23,6 @@ building's map.
 from __future__ import annotations
 
 import json
-import resource
 import subprocess
 import sys
 import threading
@@ -40,21 +42,31 @@ NS = "aisdf/bench"
 # ----------------------------------------------------------------------------- the map
 
 
-def demo_map(out: Path, train_steps: int = 900, seed: int = 0, duration: float = 180.0, quiet: bool = False) -> dict:
-    """Train (or load from ``out/map.msgpack``) the demo building's map as the demo makes it."""
+MAPPERS = ("submaps", "single")
+DEFAULT_STEPS = {"submaps": 1200, "single": 900}  # about what the demo's mapper makes in 180 s
+
+
+def demo_map(out: Path, train_steps: int | None = None, seed: int = 0, duration: float = 180.0, quiet: bool = False,
+             mapper: str = "submaps") -> dict:
+    """Train (or load from ``out/map-<mapper>.msgpack``) the demo building's map as the demo
+    makes it: ``messages``, what the mapper publishes for it ((key, message) pairs)."""
     from aisdf_frontend.config import KeyframeConfig
     from aisdf_frontend.keyframes import KeyframeSelector
 
     from ..pipeline import MappingPipeline
+    from ..submaps.pipeline import SubmapPipeline
     from ..synthetic import SyntheticSequence
 
-    path = out / "map.msgpack"
+    if mapper not in MAPPERS:
+        raise ValueError(f"mapper must be one of {MAPPERS}, not {mapper!r}")
+    train_steps = train_steps or DEFAULT_STEPS[mapper]
+    path = out / f"map-{mapper}.msgpack"
     fps = 30.0
     n_frames = int(max(10.0, 0.75 * duration) * fps)  # as the demo
     seq = SyntheticSequence(building="office", n_frames=n_frames, fps=fps, seed=seed)
     if path.exists():
         m = protocol.unpack(path.read_bytes())
-        if m.get("train_steps") == train_steps and m.get("n_frames") == n_frames:
+        if m.get("train_steps") == train_steps and m.get("n_frames") == n_frames and m.get("mapper") == mapper:
             return {"seq": seq, **m}
     t0 = time.perf_counter()
     sel = KeyframeSelector(KeyframeConfig())
@@ -63,19 +75,26 @@ def demo_map(out: Path, train_steps: int = 900, seed: int = 0, duration: float =
         f = seq.frame(i)
         if sel.is_keyframe(f["stamp"], f["depth"], f["K"], f["T_WC"]):
             kfs.append(i)
-    pipe = MappingPipeline.from_settings("cpu")
+    pipe = (SubmapPipeline if mapper == "submaps" else MappingPipeline).from_settings("cpu")
     per = max(1, train_steps // max(1, len(kfs)))
     for j, i in enumerate(kfs):
         f = seq.frame(i)
         pipe.add_keyframe(protocol.Keyframe(f["frame_id"], f["stamp"], np.asarray(f["depth"], np.float32), f["K"],
                                             f["T_WC"]))
-        for _ in range(per if j < len(kfs) - 1 else train_steps - per * (len(kfs) - 1)):
+        # per steps a keyframe, the rest after the last; a submap mapper steps once its grid
+        # exists (a few keyframes in: it waits for the Atlanta frame), catching up then.
+        target = per * (j + 1) if j < len(kfs) - 1 else train_steps
+        while pipe.steps < target and (mapper == "single" or pipe.submaps):
             pipe.step()
         if not quiet and (j % 20 == 0 or j == len(kfs) - 1):
             print(f"  training the demo map: keyframe {j + 1}/{len(kfs)}, step {pipe.steps}/{train_steps}, "
                   f"{time.perf_counter() - t0:.0f} s", flush=True)
-    m = {"train_steps": train_steps, "n_frames": n_frames, "keyframes": len(kfs),
-         "weights": pipe.weight_snapshot(1).to_msg(), "surfels": pipe.surfel_map(1).to_msg()}
+    if mapper == "submaps":
+        messages = [(k, protocol.unpack(v)) for k, v in pipe.map_messages(1, changed_only=False, epoch=1)]
+    else:
+        messages = [(keys.MAP_WEIGHTS, pipe.weight_snapshot(1).to_msg()), (keys.MAP_SURFELS, pipe.surfel_map(1).to_msg())]
+    m = {"mapper": mapper, "train_steps": train_steps, "steps": pipe.steps, "n_frames": n_frames, "keyframes": len(kfs),
+         "messages": messages, "describe": pipe.describe() if hasattr(pipe, "describe") else "one network"}
     out.mkdir(parents=True, exist_ok=True)
     path.write_bytes(protocol.pack(m))
     return {"seq": seq, **m}
@@ -105,13 +124,40 @@ def _cos_dist(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return 1.0 - np.sum(a * b, 1) / np.maximum(na * nb, 1e-12)
 
 
+def versioned(messages, version: int) -> list[tuple[str, dict]]:
+    """The map's messages as the mapper would publish them for map ``version`` (every
+    submap changed): each snapshot, the index (its entries too) and the surfels at ``version``."""
+    out = []
+    for key, msg in messages:
+        msg = dict(msg, version=version)
+        if key == keys.MAP_INDEX:
+            msg["submaps"] = {sid: dict(v, version=version) for sid, v in msg["submaps"].items()}
+        out.append((key, msg))
+    return out
+
+
 def _engine(m: dict, bake_threads: int = 2):
     from aisdf_query.engine import QueryEngine
 
     e = QueryEngine(device="auto", bake_threads=bake_threads)
-    e.set_weights(protocol.WeightSnapshot.from_msg(m["weights"]))
-    e.set_surfels(protocol.SurfelMap.from_msg(m["surfels"]))
+    for key, msg in m["messages"]:
+        if key == keys.MAP_WEIGHTS:
+            e.set_weights(protocol.WeightSnapshot.from_msg(msg))
+        elif key.startswith(keys.MAP_SUBMAPS + "/"):
+            e.set_submap(protocol.WeightSnapshot.from_msg(msg))
+        elif key == keys.MAP_INDEX:
+            e.set_index(protocol.SubmapIndex.from_msg(msg))
+        elif key == keys.MAP_SURFELS:
+            e.set_surfels(protocol.SurfelMap.from_msg(msg))
     return e
+
+
+def _warm(e) -> None:
+    """torch's first call of each network (not the bake's to pay)."""
+    st = e.state
+    nets = [st.net] if st.submaps is None else [sm.net for sm in st.submaps.submaps.values()]
+    for net in nets:
+        e._implicit(net, np.zeros((4096, 3), np.float32), True)
 
 
 _BAKE_PROBE = r"""
@@ -119,10 +165,10 @@ import json, resource, sys, time
 import torch
 torch.set_num_threads(1)
 from aisdf import protocol
-from aisdf.bench.query import _engine
+from aisdf.bench.query import _engine, _warm
 m = protocol.unpack(open(sys.argv[1], "rb").read())
 e = _engine(m, int(sys.argv[2]))
-e._implicit(e.state.net, __import__("numpy").zeros((4096, 3), "float32"), True)   # warm torch
+_warm(e)
 from aisdf.baked import bake, BakeConfig
 import numpy as np
 from aisdf.observed import ObservedGrid
@@ -152,25 +198,31 @@ def bake_probe(map_path: Path, threads: int = 2) -> dict:
 
 
 def run(out: str | Path = "runs/bench-query", sizes=(1_000, 10_000, 100_000), repeats: int = 20,
-        threads: int | None = None, bake_threads: int = 2, train_steps: int = 900, planners: int = 8, planner_s: float = 60.0,
-        lag_s: float = 30.0, n_eval: int = 200_000, quiet: bool = False, log_dir: str | None = None) -> dict:
+        threads: int | None = None, bake_threads: int = 2, train_steps: int | None = None, planners: int = 8,
+        planner_s: float = 60.0, lag_s: float = 30.0, n_eval: int = 200_000, quiet: bool = False,
+        log_dir: str | None = None, mapper: str = "submaps") -> dict:
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     torch.set_num_threads(threads or 1)  # as the service: parallelism from its workers and bake threads
     say = (lambda *a: None) if quiet else (lambda *a: print(*a, flush=True))
     say("1/6 the demo building's map")
-    m = demo_map(out, train_steps, quiet=quiet)
+    m = demo_map(out, train_steps, quiet=quiet, mapper=mapper)
     seq = m.pop("seq")
-    res: dict = {"map": {"keyframes": m["keyframes"], "train_steps": m["train_steps"]},
+    res: dict = {"map": {"mapper": mapper, "describe": m["describe"], "keyframes": m["keyframes"],
+                         "train_steps": m["steps"]},  # made (at least one a keyframe): can exceed --train-steps
                  "threads": torch.get_num_threads(), "bake_threads": bake_threads}
 
     say("2/6 bake time and memory (a fresh process)")
-    res["bake"] = bake_probe(out / "map.msgpack", bake_threads)
+    res["bake"] = bake_probe(out / f"map-{mapper}.msgpack", bake_threads)
 
     say("3/6 accuracy on the demo's evaluation points")
     from ..demo import eval_points_from
 
     eng = _engine(m, bake_threads)
+    if mapper == "submaps":
+        st = eng.state
+        res["map"].update(submaps=len(st.submaps.submaps), surfels=len(st.surfels) if st.surfels is not None else 0,
+                          measured_points=len(st.measured) if st.measured is not None else 0)
     eng.bake_now()
     rng = np.random.default_rng(0)
     pts = eval_points_from(seq, len(seq), n_eval, rng)
@@ -200,7 +252,6 @@ def run(out: str | Path = "runs/bench-query", sizes=(1_000, 10_000, 100_000), re
     with Stack(services=("query",), namespace=NS, args={"query": qargs}, log_dir=log_dir) as stack:
         with SdfClient(NS, zenoh=stack.client_zenoh, timeout=60.0) as client:
             s = client._session
-            wkey, skey = keys.key(NS, keys.MAP_WEIGHTS), keys.key(NS, keys.MAP_SURFELS)
             info_key = keys.key(NS, "info/query")
 
             def baked_version():
@@ -208,10 +259,9 @@ def run(out: str | Path = "runs/bench-query", sizes=(1_000, 10_000, 100_000), re
                 return i.get("baked_version")
 
             def publish(version: int):
-                w, sf = dict(m["weights"]), dict(m["surfels"])
-                w["version"] = sf["version"] = version
-                transport.put(s, skey, sf)
-                transport.put(s, wkey, w)
+                # the surfels first (the map's first bake then has them), the weights or the submaps, the index
+                for key, msg in sorted(versioned(m["messages"], version), key=lambda km: km[0] != keys.MAP_SURFELS):
+                    transport.put(s, keys.key(NS, key), msg)
 
             def ready():
                 if baked_version() == 1:
@@ -220,6 +270,17 @@ def run(out: str | Path = "runs/bench-query", sizes=(1_000, 10_000, 100_000), re
                 return False
 
             wait_for(ready, 120, period=1.0, what="the query service to bake the map")
+            # A submap map arrives as several messages, each a new map state for the service:
+            # the first bake may be of part of it, and bakes of the rest follow. Measure once
+            # no bake has finished for 5 s (a bake of this map takes about 1 s).
+            bakes = [-1, (transport.get_latest(s, info_key, 1.0) or {}).get("bakes")]
+
+            def settled():
+                time.sleep(5.0)
+                bakes[:] = [bakes[1], (transport.get_latest(s, info_key, 1.0) or {}).get("bakes")]
+                return bakes[0] == bakes[1]
+
+            wait_for(settled, 120, period=0.0, what="the query service's bakes to finish")
             for grad in (False, True):
                 for npts in sizes:
                     q = pts[rng.choice(len(pts), npts, replace=False)].astype(np.float32)
@@ -324,9 +385,14 @@ def concurrent_planners(client: SdfClient, pts: np.ndarray, planners: int, secon
 
 def report(res: dict) -> str:
     b, a, lg, pl = res["bake"], res["accuracy"], res["lag"], res["planners"]
-    lines = [f"Map: the demo building (office), {res['map']['keyframes']} keyframes, "
-             f"{res['map']['train_steps']} training steps (cpu preset); torch threads {res['threads']} per "
-             f"evaluation, {res['bake_threads']} bake threads.", "",
+    mp = res["map"]
+    what = (f"{mp.get('submaps')} submaps ({mp.get('describe')}), {mp.get('surfels')} surfels, "
+            f"{mp.get('measured_points'):,} measured points: `fused` is protocol 1.4's answer"
+            if mp.get("mapper", "single") == "submaps" else "one network: `fused` is protocol 1.3's answer")
+    lines = [f"Map: the demo building (office), {mp['keyframes']} keyframes, "
+             f"{mp['train_steps']} training steps (cpu preset), {what}; torch threads {res['threads']} per "
+             f"evaluation, {res['bake_threads']} bake threads. The lag row: the whole map republished each second "
+             f"(a submap map: every submap changed, so every bake is a full one).", "",
              "| bake | value |", "|---|---:|",
              f"| wall time (s) | {b['wall_s']:.2f} |",
              f"| network evaluations | {b['evaluations']:,} |",
