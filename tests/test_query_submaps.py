@@ -418,6 +418,32 @@ def test_submap_ordering_epochs_and_bad_snapshots(submap_map):
     assert rep.map_version == 7
 
 
+def test_bench_query_republishes_a_submap_map_whole_at_a_new_version(submap_map):
+    """``aisdf bench query``'s map messages: fed to an engine they give the whole submap map;
+    republished at a new version (its lag run) every submap and the index move to it, so the
+    engine takes all of them and the map's version is the new one."""
+    from aisdf import keys
+    from aisdf.bench.query import _engine, versioned
+
+    m = submap_map
+    msgs = [(f"{keys.MAP_SUBMAPS}/{cell_id(c)}", m["snaps"][c].to_msg()) for c in CELLS]
+    msgs.append((keys.MAP_INDEX, index(m["grid"], {c: 1 for c in CELLS}, 1).to_msg()))
+    e = _engine({"messages": msgs})
+    assert e.state.version == 1 and set(e.state.submaps.submaps) == set(CELLS)
+    again = versioned(msgs, 7)
+    assert [k for k, _ in again] == [k for k, _ in msgs] and msgs[0][1]["version"] == 1  # the originals are kept
+    idx = dict(again)[keys.MAP_INDEX]
+    assert idx["version"] == 7 and {v["version"] for v in idx["submaps"].values()} == {7}
+    for key, msg in again:
+        if key == keys.MAP_INDEX:
+            assert e.set_index(protocol.SubmapIndex.from_msg(msg)) == []  # everything listed is held
+        else:
+            assert e.set_submap(protocol.WeightSnapshot.from_msg(msg))  # newer: taken
+    assert e.state.version == 7 and {sm.version for sm in e.state.submaps.submaps.values()} == {7}
+    before = e.state
+    assert not e.set_submap(protocol.WeightSnapshot.from_msg(again[0][1])) and e.state is before  # not newer
+
+
 def test_measured_points_1_4_answers_bake_and_the_1_3_answer(submap_map):
     """Protocol 1.4: submaps carrying measured points. ``fused`` answers are the rule of
     ``structure.measured`` over the union of the submaps' points (value and gradient), closer
