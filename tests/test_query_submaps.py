@@ -423,12 +423,12 @@ def test_bench_query_republishes_a_submap_map_whole_at_a_new_version(submap_map)
     republished at a new version (its lag run) every submap and the index move to it, so the
     engine takes all of them and the map's version is the new one."""
     from aisdf import keys
-    from aisdf.bench.query import _engine, versioned
+    from aisdf.bench.query_map import engine_of, versioned
 
     m = submap_map
     msgs = [(f"{keys.MAP_SUBMAPS}/{cell_id(c)}", m["snaps"][c].to_msg()) for c in CELLS]
     msgs.append((keys.MAP_INDEX, index(m["grid"], {c: 1 for c in CELLS}, 1).to_msg()))
-    e = _engine({"messages": msgs})
+    e = engine_of({"messages": msgs})
     assert e.state.version == 1 and set(e.state.submaps.submaps) == set(CELLS)
     again = versioned(msgs, 7)
     assert [k for k, _ in again] == [k for k, _ in msgs] and msgs[0][1]["version"] == 1  # the originals are kept
@@ -442,6 +442,9 @@ def test_bench_query_republishes_a_submap_map_whole_at_a_new_version(submap_map)
     assert e.state.version == 7 and {sm.version for sm in e.state.submaps.submaps.values()} == {7}
     before = e.state
     assert not e.set_submap(protocol.WeightSnapshot.from_msg(again[0][1])) and e.state is before  # not newer
+    with pytest.raises(ValueError, match="not a map key"):
+        e.take("map/mesh", again[0][1])
+    assert e.state is before
 
 
 def test_measured_points_1_4_answers_bake_and_the_1_3_answer(submap_map):

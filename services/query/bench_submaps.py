@@ -23,7 +23,7 @@ import tracemalloc
 import numpy as np
 import torch
 
-from aisdf import protocol
+from aisdf import keys, protocol
 from aisdf.baked import bake
 from aisdf.mapping.frames import Frame
 from aisdf.structure.fusion import DEFAULT_FUSE_RADIUS
@@ -34,15 +34,11 @@ from .engine import QueryEngine
 
 
 def feed(engine: QueryEngine, messages) -> int:
+    """Packed (key, bytes) map messages into ``engine``; how many submap snapshots it took."""
     n = 0
     for key, data in messages:
-        msg = protocol.unpack(data)
-        if key.startswith("map/submaps/"):
-            n += engine.set_submap(protocol.WeightSnapshot.from_msg(msg))
-        elif key == "map/index":
-            engine.set_index(protocol.SubmapIndex.from_msg(msg))
-        elif key == "map/surfels":
-            engine.set_surfels(protocol.SurfelMap.from_msg(msg))
+        taken = engine.take(key, protocol.unpack(data))
+        n += key.startswith(keys.MAP_SUBMAPS + "/") and bool(taken)
     return n
 
 

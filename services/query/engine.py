@@ -35,7 +35,7 @@ import threading
 import numpy as np
 import torch
 
-from aisdf import protocol
+from aisdf import keys, protocol
 from aisdf.baked import BakeConfig
 from aisdf.collision import chomp_cost
 from aisdf.structure.fusion import DEFAULT_FUSE_RADIUS
@@ -237,6 +237,21 @@ class QueryEngine:
                                        cur.epoch, cur.observed, submaps=cur.submaps, measured=cur.measured)
                 self.baker.map_arrived(self._state)
         return want
+
+    def take(self, key: str, msg: dict):
+        """One decoded map message by its key under the namespace (``map/weights``,
+        ``map/submaps/<id>``, ``map/index``, ``map/surfels``), as the mapper publishes it:
+        what the matching ``set_*`` returns. For in-process feeds (the benches); the service's
+        subscribers call ``set_*`` themselves. ValueError for any other key."""
+        if key == keys.MAP_WEIGHTS:
+            return self.set_weights(protocol.WeightSnapshot.from_msg(msg))
+        if key.startswith(keys.MAP_SUBMAPS + "/"):
+            return self.set_submap(protocol.WeightSnapshot.from_msg(msg))
+        if key == keys.MAP_INDEX:
+            return self.set_index(protocol.SubmapIndex.from_msg(msg))
+        if key == keys.MAP_SURFELS:
+            return self.set_surfels(protocol.SurfelMap.from_msg(msg))
+        raise ValueError(f"not a map key: {key!r}")
 
     def set_surfels(self, smap: protocol.SurfelMap) -> bool:
         order = (smap.epoch, smap.version)

@@ -3,7 +3,7 @@ building's map.
 
 1. The map: the demo's synthetic ``office`` building, camera path and keyframe selection,
    trained in-process with the ``cpu`` preset for ``--train-steps`` steps (the demo's
-   mapper makes about as many in its 180 s); cached in ``--out`` so a rerun skips it. By
+   mapper makes about as many in its 180 s; ``query_map.py``); cached in ``--out`` so a rerun skips it. By
    default the mapper the service runs by default (``--mapper submaps``: a network per
    submap, with measured points, so ``fused`` answers are protocol 1.4's); ``--mapper
    single``: one network (1.3's fused answer, the bench's map before 2026-12-03).
@@ -35,69 +35,9 @@ import torch
 from .. import keys, protocol, transport
 from ..client import SdfClient
 from ..stack import Stack, wait_for
+from .query_map import demo_map, engine_of, versioned
 
 NS = "aisdf/bench"
-
-
-# ----------------------------------------------------------------------------- the map
-
-
-MAPPERS = ("submaps", "single")
-DEFAULT_STEPS = {"submaps": 1200, "single": 900}  # about what the demo's mapper makes in 180 s
-
-
-def demo_map(out: Path, train_steps: int | None = None, seed: int = 0, duration: float = 180.0, quiet: bool = False,
-             mapper: str = "submaps") -> dict:
-    """Train (or load from ``out/map-<mapper>.msgpack``) the demo building's map as the demo
-    makes it: ``messages``, what the mapper publishes for it ((key, message) pairs)."""
-    from aisdf_frontend.config import KeyframeConfig
-    from aisdf_frontend.keyframes import KeyframeSelector
-
-    from ..pipeline import MappingPipeline
-    from ..submaps.pipeline import SubmapPipeline
-    from ..synthetic import SyntheticSequence
-
-    if mapper not in MAPPERS:
-        raise ValueError(f"mapper must be one of {MAPPERS}, not {mapper!r}")
-    train_steps = train_steps or DEFAULT_STEPS[mapper]
-    path = out / f"map-{mapper}.msgpack"
-    fps = 30.0
-    n_frames = int(max(10.0, 0.75 * duration) * fps)  # as the demo
-    seq = SyntheticSequence(building="office", n_frames=n_frames, fps=fps, seed=seed)
-    if path.exists():
-        m = protocol.unpack(path.read_bytes())
-        if m.get("train_steps") == train_steps and m.get("n_frames") == n_frames and m.get("mapper") == mapper:
-            return {"seq": seq, **m}
-    t0 = time.perf_counter()
-    sel = KeyframeSelector(KeyframeConfig())
-    kfs = []
-    for i in range(n_frames):
-        f = seq.frame(i)
-        if sel.is_keyframe(f["stamp"], f["depth"], f["K"], f["T_WC"]):
-            kfs.append(i)
-    pipe = (SubmapPipeline if mapper == "submaps" else MappingPipeline).from_settings("cpu")
-    per = max(1, train_steps // max(1, len(kfs)))
-    for j, i in enumerate(kfs):
-        f = seq.frame(i)
-        pipe.add_keyframe(protocol.Keyframe(f["frame_id"], f["stamp"], np.asarray(f["depth"], np.float32), f["K"],
-                                            f["T_WC"]))
-        # per steps a keyframe, the rest after the last; a submap mapper steps once its grid
-        # exists (a few keyframes in: it waits for the Atlanta frame), catching up then.
-        target = per * (j + 1) if j < len(kfs) - 1 else train_steps
-        while pipe.steps < target and (mapper == "single" or pipe.submaps):
-            pipe.step()
-        if not quiet and (j % 20 == 0 or j == len(kfs) - 1):
-            print(f"  training the demo map: keyframe {j + 1}/{len(kfs)}, step {pipe.steps}/{train_steps}, "
-                  f"{time.perf_counter() - t0:.0f} s", flush=True)
-    if mapper == "submaps":
-        messages = [(k, protocol.unpack(v)) for k, v in pipe.map_messages(1, changed_only=False, epoch=1)]
-    else:
-        messages = [(keys.MAP_WEIGHTS, pipe.weight_snapshot(1).to_msg()), (keys.MAP_SURFELS, pipe.surfel_map(1).to_msg())]
-    m = {"mapper": mapper, "train_steps": train_steps, "steps": pipe.steps, "n_frames": n_frames, "keyframes": len(kfs),
-         "messages": messages, "describe": pipe.describe() if hasattr(pipe, "describe") else "one network"}
-    out.mkdir(parents=True, exist_ok=True)
-    path.write_bytes(protocol.pack(m))
-    return {"seq": seq, **m}
 
 
 # ----------------------------------------------------------------------------- helpers
@@ -124,51 +64,15 @@ def _cos_dist(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return 1.0 - np.sum(a * b, 1) / np.maximum(na * nb, 1e-12)
 
 
-def versioned(messages, version: int) -> list[tuple[str, dict]]:
-    """The map's messages as the mapper would publish them for map ``version`` (every
-    submap changed): each snapshot, the index (its entries too) and the surfels at ``version``."""
-    out = []
-    for key, msg in messages:
-        msg = dict(msg, version=version)
-        if key == keys.MAP_INDEX:
-            msg["submaps"] = {sid: dict(v, version=version) for sid, v in msg["submaps"].items()}
-        out.append((key, msg))
-    return out
-
-
-def _engine(m: dict, bake_threads: int = 2):
-    from aisdf_query.engine import QueryEngine
-
-    e = QueryEngine(device="auto", bake_threads=bake_threads)
-    for key, msg in m["messages"]:
-        if key == keys.MAP_WEIGHTS:
-            e.set_weights(protocol.WeightSnapshot.from_msg(msg))
-        elif key.startswith(keys.MAP_SUBMAPS + "/"):
-            e.set_submap(protocol.WeightSnapshot.from_msg(msg))
-        elif key == keys.MAP_INDEX:
-            e.set_index(protocol.SubmapIndex.from_msg(msg))
-        elif key == keys.MAP_SURFELS:
-            e.set_surfels(protocol.SurfelMap.from_msg(msg))
-    return e
-
-
-def _warm(e) -> None:
-    """torch's first call of each network (not the bake's to pay)."""
-    st = e.state
-    nets = [st.net] if st.submaps is None else [sm.net for sm in st.submaps.submaps.values()]
-    for net in nets:
-        e._implicit(net, np.zeros((4096, 3), np.float32), True)
-
-
 _BAKE_PROBE = r"""
 import json, resource, sys, time
 import torch
 torch.set_num_threads(1)
 from aisdf import protocol
-from aisdf.bench.query import _engine, _warm
+from aisdf.bench.query_map import engine_of, warm
 m = protocol.unpack(open(sys.argv[1], "rb").read())
-e = _engine(m, int(sys.argv[2]))
-_warm(e)
+e = engine_of(m, int(sys.argv[2]))
+warm(e)
 from aisdf.baked import bake, BakeConfig
 import numpy as np
 from aisdf.observed import ObservedGrid
@@ -218,7 +122,7 @@ def run(out: str | Path = "runs/bench-query", sizes=(1_000, 10_000, 100_000), re
     say("3/6 accuracy on the demo's evaluation points")
     from ..demo import eval_points_from
 
-    eng = _engine(m, bake_threads)
+    eng = engine_of(m, bake_threads)
     if mapper == "submaps":
         st = eng.state
         res["map"].update(submaps=len(st.submaps.submaps), surfels=len(st.surfels) if st.surfels is not None else 0,
