@@ -31,7 +31,7 @@ RUN pip install . --no-compile \
 
 FROM python:3.11-slim
 # NUMBA_CACHE_DIR: the baked field's kernels, compiled once below, outside the byte code the
-# image leaves out (a new container's first bake would otherwise compile them: ~3 s on 2 cores).
+# image leaves out (a new container's first bake and query of a small field: 2.5 s cold, 1.3 s with it, 2 cores).
 ENV PYTHONUNBUFFERED=1 PIP_NO_CACHE_DIR=1 PIP_DISABLE_PIP_VERSION_CHECK=1 NUMBA_CACHE_DIR=/var/cache/aisdf-numba
 COPY --from=build /usr/local/lib/python3.11/site-packages /usr/local/lib/python3.11/site-packages
 COPY --from=build /usr/local/bin/aisdf* /usr/local/bin/
