@@ -148,3 +148,55 @@ def test_restarted_mapper_map_reaches_planners_within_10_s(tmp_path):
             assert all(d < 10.0 for d in delays.values()), delays
     finally:
         st.stop()
+
+
+def test_services_stop_when_the_process_that_started_them_is_killed(tmp_path):
+    """A demo or a test run killed outright (SIGKILL: a CI time limit, an operator) leaves no
+    service behind holding its port and cores: each service watches the process that started it
+    and stops cleanly (exit code 0, mapper checkpoint written) once it is gone."""
+    import os
+    import signal
+    import subprocess
+    import sys
+
+    ckpt = tmp_path / "ckpt"
+    script = (
+        "import sys, time\n"
+        "from aisdf.stack import Stack\n"
+        f"st = Stack(args={{'mapper': {MAPPER + ['--checkpoint-dir', str(ckpt)]!r}, "
+        f"'frontend': {frontend_args(60)!r}}}, log_dir={str(tmp_path / 'logs')!r}).start()\n"
+        "print(' '.join(str(p.pid) for p in st.procs.values()), flush=True)\n"
+        "time.sleep(600)\n"
+    )
+    parent = subprocess.Popen([sys.executable, "-c", script], stdout=subprocess.PIPE, text=True)
+    try:
+        pids = [int(x) for x in parent.stdout.readline().split()]
+        assert len(pids) == 3, pids
+
+        def running(pid):
+            try:
+                os.kill(pid, 0)
+            except ProcessLookupError:
+                return False
+            # re-parented to this test's process tree or init: a zombie is not running
+            with open(f"/proc/{pid}/stat") as f:
+                return f.read().rsplit(")", 1)[1].split()[0] != "Z"
+
+        assert all(running(p) for p in pids)
+        time.sleep(8.0)  # the services are up (the mapper has a map to checkpoint)
+        parent.send_signal(signal.SIGKILL)
+        parent.wait(10)
+        wait_for(lambda: not any(running(p) for p in pids), 60, what="the orphaned services to stop")
+        logs = {p.stem: p.read_text() for p in (tmp_path / "logs").glob("*.log")}
+        for name in ("query", "mapper", "frontend"):
+            assert "parent process" in logs[name] and "is gone: stopping" in logs[name], logs[name][-2000:]
+        # written on a clean stop (the periodic one is every 30 s, beyond this run)
+        assert (ckpt / "mapper-checkpoint.pt").is_file(), sorted(p.name for p in ckpt.iterdir())
+    finally:
+        if parent.poll() is None:
+            parent.kill()
+        for p in locals().get("pids", []):
+            try:
+                os.kill(p, signal.SIGKILL)
+            except ProcessLookupError:
+                pass

@@ -196,9 +196,16 @@ def overrides_from_args(args: argparse.Namespace, extra: Mapping[str, Any] | Non
     return out
 
 
+PARENT_ENV = "AISDF_PARENT_PID"
+
+
 def service_setup(cfg: ServiceConfig, name: str):
-    """Logging for a service process and a stop event set by SIGINT/SIGTERM."""
+    """Logging for a service process and a stop event set by SIGINT/SIGTERM, or, when the
+    process was started by ``aisdf.stack.Stack`` (``AISDF_PARENT_PID`` set), by its parent's
+    death: a demo or a test run killed outright (SIGKILL, a CI time limit) leaves no service
+    behind holding its ports and cores."""
     import logging
+    import os
     import signal
     import threading
 
@@ -206,6 +213,15 @@ def service_setup(cfg: ServiceConfig, name: str):
     stop = threading.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: stop.set())
+    parent = os.environ.pop(PARENT_ENV, "")  # for this process only, not for any it starts
+    if parent.isdigit():
+        def watch(pid: int = int(parent), period: float = 1.0) -> None:
+            # a process whose parent died is re-parented (to init or a subreaper): its parent id changes
+            while not stop.wait(period):
+                if os.getppid() != pid:
+                    logging.getLogger(name).warning("parent process %d is gone: stopping", pid)
+                    stop.set()
+        threading.Thread(target=watch, name="parent-watch", daemon=True).start()
     return stop
 
 

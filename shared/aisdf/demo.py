@@ -26,6 +26,7 @@ import numpy as np
 from . import keys, protocol, transport
 from .client import SdfClient
 from .collision import chomp_cost
+from .config import PARENT_ENV
 from .stack import Stack, endpoint, free_port, wait_for
 
 log = logging.getLogger("aisdf.demo")
@@ -51,7 +52,7 @@ def start_viewer(stack: Stack, port: int, path: Path, log_dir: Path, mesh_period
     log_dir.mkdir(parents=True, exist_ok=True)
     with open(log_dir / "viewer.log", "w") as out:
         return subprocess.Popen(cmd, stdout=out, stderr=subprocess.STDOUT, start_new_session=True,
-                                env={**os.environ, "PYTHONUNBUFFERED": "1"})
+                                env={**os.environ, "PYTHONUNBUFFERED": "1", PARENT_ENV: str(os.getpid())})
 
 
 def stop_viewer(p: subprocess.Popen | None, timeout: float = 30.0) -> int | None:

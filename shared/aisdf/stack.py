@@ -15,7 +15,7 @@ import sys
 import time
 from pathlib import Path
 
-from .config import ZenohOptions
+from .config import PARENT_ENV, ZenohOptions
 
 SERVICES = {"query": "aisdf_query.main", "mapper": "aisdf_mapper.main", "frontend": "aisdf_frontend.main"}
 
@@ -67,8 +67,9 @@ class Stack:
     def start(self, only: list[str] | None = None) -> "Stack":
         # One BLAS/OpenMP thread per service unless told otherwise: on a small machine
         # the three processes otherwise oversubscribe the cores (spinning threads).
+        # The services stop when this process dies, however it dies (config.service_setup).
         env = {"OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1", "MKL_NUM_THREADS": "1",
-               **os.environ, "PYTHONUNBUFFERED": "1", **self.env}
+               **os.environ, "PYTHONUNBUFFERED": "1", PARENT_ENV: str(os.getpid()), **self.env}
         for name in only or self.services:
             out = subprocess.DEVNULL
             if self.log_dir:
