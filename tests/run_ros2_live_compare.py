@@ -37,6 +37,7 @@ from pathlib import Path
 import numpy as np
 
 from aisdf import keys, protocol, transport
+from aisdf.config import PARENT_ENV
 from aisdf.stack import Stack, endpoint, free_port, wait_for
 
 MAPPER_ARGS = ["--preset", "cpu"]
@@ -56,7 +57,8 @@ def replay_command(port: int, n_frames: int, width: int, height: int, building: 
 
 def popen(cmd: list[str], log_path: Path | None):
     out = open(log_path, "w") if log_path else subprocess.DEVNULL  # noqa: SIM115 - closed by the caller
-    env = {"OMP_NUM_THREADS": "1", **os.environ, "PYTHONUNBUFFERED": "1"}
+    # the router (a service) stops if this process dies (aisdf.config.service_setup)
+    env = {"OMP_NUM_THREADS": "1", **os.environ, "PYTHONUNBUFFERED": "1", PARENT_ENV: str(os.getpid())}
     return subprocess.Popen(cmd, stdout=out, stderr=subprocess.STDOUT, env=env, start_new_session=True), out
 
 

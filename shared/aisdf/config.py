@@ -200,16 +200,23 @@ PARENT_ENV = "AISDF_PARENT_PID"
 
 
 def service_setup(cfg: ServiceConfig, name: str):
-    """Logging for a service process and a stop event set by SIGINT/SIGTERM, or, when the
-    process was started by ``aisdf.stack.Stack`` (``AISDF_PARENT_PID`` set), by its parent's
-    death: a demo or a test run killed outright (SIGKILL, a CI time limit) leaves no service
-    behind holding its ports and cores."""
+    """Logging for a service process and its stop event (``stop_event``)."""
+    import logging
+
+    logging.basicConfig(level=cfg.log_level, format=f"%(asctime)s {name} %(levelname)s %(message)s")
+    return stop_event(name)
+
+
+def stop_event(name: str):
+    """A stop event set by SIGINT/SIGTERM, or, when the process was started by
+    ``aisdf.stack.Stack`` (``AISDF_PARENT_PID`` set), by its parent's death: a demo or a test
+    run killed outright (SIGKILL, a CI time limit) leaves no service behind holding its ports
+    and cores."""
     import logging
     import os
     import signal
     import threading
 
-    logging.basicConfig(level=cfg.log_level, format=f"%(asctime)s {name} %(levelname)s %(message)s")
     stop = threading.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: stop.set())

@@ -266,11 +266,9 @@ def main(argv: list[str] | None = None) -> int:
                    help="a broken robot: /tf_static without the camera_link -> optical rotation (tests)")
     args = p.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s replay %(levelname)s %(message)s")
-    import signal
+    from aisdf.config import stop_event
 
-    stop = threading.Event()
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(sig, lambda *_: stop.set())
+    stop = stop_event("replay")
     session = rz.open_ros_session(args.connect, args.zenoh_config)
     try:
         if args.bag:
