@@ -94,16 +94,50 @@ def test_the_scorer_counts_answers_too_high_exactly():
         def sdf(self, points):
             return (gt + offsets).astype(np.float32)
 
-    mae, high = _Scorer(np.zeros((200, 3)), gt).evaluate(Pipe())
+    mae, high, unmeasured = _Scorer(np.zeros((200, 3)), gt).evaluate(Pipe())
+    assert unmeasured == {}  # nothing measured given: no way to tell
     assert high == {"implicit": 15.0, "fused": 15.0, "served": 15.0}
     from aisdf.structure.measured import MeasuredSurface
 
     # No surfel map and no measured point: the measured answer is the fused one.
-    mae2, high2 = _Scorer(np.zeros((200, 3)), gt).evaluate(Pipe(), MeasuredSurface())
+    mae2, high2, _ = _Scorer(np.zeros((200, 3)), gt).evaluate(Pipe(), MeasuredSurface())
     assert high2 == {"implicit": 15.0, "fused": 15.0, "measured": 15.0, "served": 15.0}
     assert mae2["measured"] == mae2["fused"]
     expected = 100 * (30 * (TOO_HIGH_M + 0.01) + 20 * (TOO_HIGH_M - 0.01) + 40 * 0.2) / 200
     assert mae["fused"] == pytest.approx(expected, abs=1e-3)
+
+
+def test_the_scorer_finds_the_error_at_surfaces_no_keyframe_measured():
+    """Ten points on a line from one measured point (no surfel map): the first six have it as
+    their nearest surface; the last four have an unmeasured surface 20 cm nearer, where the
+    network answers 30 cm too high and the served answer is capped at the measured point."""
+    import numpy as np
+
+    from aisdf.bench.scaling_walk import _Scorer
+    from aisdf.structure.measured import DEFAULT_SLACK, MeasuredPoints
+
+    x = np.linspace(0.1, 1.0, 10)
+    pts = np.stack([x, np.zeros(10), np.zeros(10)], axis=1)
+    gt = np.where(np.arange(10) < 6, x, x - 0.2)
+    net = np.where(np.arange(10) < 6, gt, gt + 0.3)
+
+    class Pipe:
+        def sdf(self, points):
+            return net.astype(np.float32)
+
+        def measured_points(self):  # publishes measured points: served = the measured answer
+            return None
+
+        measured = True
+
+    mae, _, unmeasured = _Scorer(pts, gt).evaluate(Pipe(), MeasuredPoints(np.zeros((1, 3))))
+    # served: exact on the first six; capped at the measured point + slack, x + 0.01, on the last four
+    assert unmeasured["points_pct"] == 40.0
+    assert unmeasured["error_cm"] == pytest.approx(100 * 4 * (0.2 + DEFAULT_SLACK) / 10, abs=1e-3)
+    assert unmeasured["rest_error_cm"] == pytest.approx(0.0, abs=1e-3)
+    assert mae["served"] == pytest.approx(unmeasured["error_cm"], abs=2e-3)
+    _, _, net_only = _Scorer(pts, gt).evaluate(Pipe(), MeasuredPoints(np.zeros((1, 3))), source="implicit")
+    assert net_only["error_cm"] == pytest.approx(100 * 4 * 0.3 / 10, abs=1e-3)
 
 
 def test_training_overrides_from_the_command_line_merge_over_the_profile():

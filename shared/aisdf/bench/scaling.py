@@ -26,7 +26,9 @@ keyframes, models with their optimiser state, observed space; per keyframe), byt
 published per second while walking (changed only, and republishing everything), the
 errors above, the share of the whole map's points where the answer is more than 5 cm above
 the exact SDF (``TOO_HIGH_M``: the side on which a planner would cut a corner; a mean error
-hides it), and the issue's criteria evaluated per method. ``run`` writes
+hides it), where the error is (the share of points whose nearest surface no keyframe
+measured, ``UNMEASURED_M``, their part of the mean error and the error on the others), and
+the issue's criteria evaluated per method. ``run`` writes
 ``scaling.json`` and ``scaling.md`` under ``out``; ``--seeds N`` walks every scene N times
 (seeds seed .. seed + N - 1) and judges the mean (``scaling_seeds.py``); ``--quick`` is a
 tiny walk (a dozen keyframes a quarter second apart, spread over the whole floor) for CI.
@@ -207,6 +209,10 @@ def report(res: dict) -> str:
          lambda r: f"{r['too_high_walk_end_by_source_pct']['measured']:.1f} / "
          f"{r['too_high_end_by_source_pct']['measured']:.1f}"
          if "measured" in r.get("too_high_end_by_source_pct", {}) else "-"),
+        (f"points whose nearest surface no keyframe measured ({src}), +{cfg['tail_s']:g} s: % of points, their "
+         "part of the error / the error on the others (cm)",
+         lambda r: f"{r['unmeasured_end']['points_pct']:.1f} %: {r['unmeasured_end']['error_cm']:.2f} / "
+         f"{r['unmeasured_end']['rest_error_cm']:.2f}" if r.get("unmeasured_end") else "-"),
     ]
     for label, fn in rows:
         cells = []

@@ -60,6 +60,10 @@ def frame_of(f: dict):
 
 
 TOO_HIGH_M = 0.05  # an answer this far above the exact SDF promises a planner room that is not there
+# A point's nearest surface is "unmeasured" when the nearest measured point and the surfel map are both
+# farther than |exact SDF| + this: no keyframe saw that surface (README, Scaling: "Where the floor's
+# remaining error is")
+UNMEASURED_M = 0.05
 
 
 class _Scorer:
@@ -70,13 +74,18 @@ class _Scorer:
     protocol 1.3's answer), that with the measured surface (``measured``,
     ``structure.measured``; ``measured`` gives the distance to the nearest measured point),
     and what ``query/sdf`` serves by default for this mapper (``served``: ``measured`` when
-    the mapper publishes measured points, protocol 1.4, else ``fused``).
+    the mapper publishes measured points, protocol 1.4, else ``fused``); and, given
+    ``measured``, where the error of ``source``'s answer is: the share of points whose
+    nearest surface no keyframe measured (``UNMEASURED_M``), their part of the mean error
+    and the mean error on the other points.
     ``score(pipe, source, measured)`` one of the means."""
 
     def __init__(self, points: np.ndarray, gt: np.ndarray):
         self.points, self.gt = points, gt
 
-    def _answers(self, pipe, measured=None) -> dict[str, np.ndarray]:
+    def _answers(self, pipe, measured=None) -> tuple[dict[str, np.ndarray], np.ndarray | None]:
+        """The answers, and the distance to the nearest observed surface (surfel or measured
+        point; None without ``measured``)."""
         from ..structure.fusion import fuse
         from ..structure.measured import measured_fuse
         from ..structure.surfel_map import explicit_sdf
@@ -86,20 +95,33 @@ class _Scorer:
         # fusion.fused_sdf, with the surfel distance kept for the measured answer
         d_e = explicit_sdf(self.points, s)[0] if s is not None and len(s) else np.full(len(f), np.inf)
         out = {"implicit": f, "fused": np.asarray(fuse(f, None, d_e, None)[0], dtype=np.float64)}
+        observed = None
         if measured is not None:
-            out["measured"] = measured_fuse(out["fused"], f, d_e, measured.distance(self.points))
+            d_m = measured.distance(self.points)
+            out["measured"] = measured_fuse(out["fused"], f, d_e, d_m)
+            observed = np.minimum(np.abs(d_e), d_m)
         out["served"] = out["measured"] if serves_measured(pipe) and measured is not None else out["fused"]
-        return out
+        return out, observed
 
-    def evaluate(self, pipe, measured=None) -> tuple[dict[str, float], dict[str, float]]:
-        """(mean |error| in cm, % of points more than TOO_HIGH_M above the truth), per answer."""
-        ans = self._answers(pipe, measured)
+    def evaluate(self, pipe, measured=None, source: str = "served") -> tuple[dict, dict, dict]:
+        """(mean |error| in cm, % of points more than TOO_HIGH_M above the truth) per answer, and
+        for ``source``'s answer, given ``measured``: {"points_pct": share of points whose nearest
+        surface is unmeasured, "error_cm": their part of the mean error, "rest_error_cm": the
+        mean error on the others} (empty without ``measured``)."""
+        ans, observed = self._answers(pipe, measured)
         mae = {k: round(100.0 * float(np.mean(np.abs(v - self.gt))), 3) for k, v in ans.items()}
         high = {k: round(100.0 * float(np.mean(v - self.gt > TOO_HIGH_M)), 3) for k, v in ans.items()}
-        return mae, high
+        unmeasured = {}
+        if observed is not None:
+            err = np.abs(ans[source] - self.gt)
+            m = observed - np.abs(self.gt) > UNMEASURED_M
+            unmeasured = {"points_pct": round(100.0 * float(m.mean()), 3),
+                          "error_cm": round(100.0 * float(err[m].sum()) / len(err), 3),
+                          "rest_error_cm": round(100.0 * float(err[~m].mean()), 3) if (~m).any() else 0.0}
+        return mae, high, unmeasured
 
     def score(self, pipe, source: str = "served", measured=None) -> float:
-        return self.evaluate(pipe, measured)[0][source]
+        return self.evaluate(pipe, measured, source)[0][source]
 
 
 def serves_measured(pipe) -> bool:
@@ -211,7 +233,8 @@ def walk(pipe, seq, frames: list[dict], stream_per_kf: float, cfg: ScalingConfig
                 else:
                     key = "walk_end" if kind == "walk_end" else "end"
                     pts = measured_of(pipe, measured)
-                    both, high = whole.evaluate(pipe, pts)
+                    both, high, unmeasured = whole.evaluate(pipe, pts, cfg.source)
+                    rec[f"unmeasured_{key}"] = unmeasured
                     rec[f"error_{key}_cm"] = both[cfg.source]
                     rec[f"error_{key}_by_source_cm"] = both
                     rec[f"too_high_{key}_pct"] = high[cfg.source]
