@@ -26,6 +26,15 @@ def ray_dirs_C(K: np.ndarray, H: int, W: int) -> np.ndarray:
     return np.stack([(u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1], np.ones_like(u)], axis=-1)
 
 
+def valid_depth(depth: np.ndarray, max_depth: float = np.inf) -> np.ndarray:
+    """Boolean mask of the usable depth pixels: finite, > 0 and <= ``max_depth`` (metres).
+    The one rule every consumer of a keyframe's depth applies (training, the observed
+    space, the measured surface, the checks on arrival)."""
+    d = np.asarray(depth)
+    with np.errstate(invalid="ignore"):
+        return np.isfinite(d) & (d > 0) & (d <= max_depth)
+
+
 def backproject(depth: np.ndarray, K: np.ndarray) -> np.ndarray:
     """Depth (H, W) in metres -> points_C (H, W, 3); invalid pixels (depth <= 0) give NaN."""
     depth = np.asarray(depth, dtype=np.float64)

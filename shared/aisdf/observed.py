@@ -25,6 +25,7 @@ from collections.abc import Mapping
 import numpy as np
 
 from .codec import ProtocolError, _bad, decode_array, encode_array
+from .geometry import valid_depth
 
 _OFF = 1 << 20  # voxel indices in [-2^20, 2^20) pack into 21 bits each
 _MASK = (1 << 21) - 1
@@ -65,7 +66,7 @@ class ObservedSpace:
             stride += 1
         v, u = np.mgrid[stride // 2:H:stride, stride // 2:W:stride]
         d = depth[v, u]
-        ok = np.isfinite(d) & (d > 0) & (d <= max_depth)
+        ok = valid_depth(d, max_depth)
         u, v, d = u[ok], v[ok], d[ok]
         if not len(d):
             return 0

@@ -16,7 +16,7 @@ from typing import Any
 
 import numpy as np
 
-from . import keys, protocol
+from . import geometry, keys, protocol
 from .mapping.frames import Frame
 from .mapping.presets import training_config
 from .mapping.trainer import Trainer
@@ -30,11 +30,13 @@ def frame_from_keyframe(kf: protocol.Keyframe) -> Frame:
     return Frame(kf.frame_id, kf.stamp, kf.depth_m(), kf.K, kf.T_WC, sensor=kf.sensor)
 
 
-def grow_bounds(bounds: np.ndarray | None, frame: Frame) -> np.ndarray:
-    """(2, 3) world box of what is seen so far, grown by a keyframe's points and camera."""
+def grow_bounds(bounds: np.ndarray | None, frame: Frame, max_depth: float = np.inf) -> np.ndarray:
+    """(2, 3) world box of what is seen so far, grown by a keyframe's valid points
+    (``geometry.valid_depth``) and its camera."""
     from .geometry import backproject, transform
 
     d = frame.depth[::4, ::4]
+    d = np.where(geometry.valid_depth(d, max_depth), d, 0.0)
     K = frame.K.copy()
     K[:2] /= 4
     pts = backproject(d, K).reshape(-1, 3)
@@ -65,7 +67,7 @@ class MappingPipeline:
         if atlanta:
             from .structure import Structure
 
-            self.structure = Structure(seed=trainer.cfg.seed)
+            self.structure = Structure(seed=trainer.cfg.seed, max_depth=trainer.cfg.max_depth)
             if atlanta_state:
                 self.structure.load_state_dict(atlanta_state)
             if trainer.cfg.surfel_bounds:
@@ -110,7 +112,7 @@ class MappingPipeline:
         used: a duplicate (sensor, frame_id), too few valid depth pixels."""
         frame = frame_from_keyframe(kf) if isinstance(kf, protocol.Keyframe) else kf
         depth = frame.depth
-        valid = np.isfinite(depth) & (depth > 0) & (depth <= self.trainer.cfg.max_depth)
+        valid = geometry.valid_depth(depth, self.trainer.cfg.max_depth)
         if int(valid.sum()) < MIN_VALID_PIXELS:
             raise ValueError(f"only {int(valid.sum())} valid depth pixels (need {MIN_VALID_PIXELS})")
         if frame.key in {f.key for f in self.trainer.keyframes}:
@@ -127,7 +129,7 @@ class MappingPipeline:
         self._timings["observed"].append(1e3 * (time.perf_counter() - t))
 
     def _grow_bounds(self, frame: Frame) -> None:
-        self._bounds = grow_bounds(self._bounds, frame)
+        self._bounds = grow_bounds(self._bounds, frame, self.trainer.cfg.max_depth)
 
     # ------------------------------------------------------------------ training
 

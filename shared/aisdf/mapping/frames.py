@@ -69,7 +69,7 @@ class Frame:
 def clean_depth(depth: np.ndarray, max_depth: float) -> np.ndarray:
     """float32 copy with 0 wherever the depth is non-finite, <= 0 or > max_depth."""
     d = np.array(depth, dtype=np.float32)
-    d[~(np.isfinite(d) & (d > 0) & (d <= max_depth))] = 0.0
+    d[~geometry.valid_depth(d, max_depth)] = 0.0
     return d
 
 

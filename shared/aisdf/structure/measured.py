@@ -5,7 +5,7 @@ publishing each submap's points).
 
 Why. The fused answer (``fusion``) takes the smaller of the network and the surfel distance,
 so where the network is below an exact surfel distance it stays below. On the building
-floor that is most of the error (README, "The surfel map is exact"). Taking the surfel
+floor that is most of the error (docs/scaling-notes.md, "The surfel map is exact"). Taking the surfel
 distance everywhere halves the error but answers too high at furniture, which the surfel
 map does not hold. The depth pixels do see the furniture: a point is nearer to an obstacle
 than the surfel map says only if something was measured nearer (or the nearer surface was
@@ -28,7 +28,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..geometry import backproject, kdtree, transform
+from ..geometry import backproject, kdtree, transform, valid_depth
 from ..observed import pack_keys
 
 DEFAULT_VOXEL = 0.1
@@ -61,7 +61,7 @@ class MeasuredSurface:
         K, T = np.asarray(K, np.float64), np.asarray(T_WC, np.float64)
         if K.shape != (3, 3) or T.shape != (4, 4) or not (np.all(np.isfinite(K)) and np.all(np.isfinite(T))):
             raise ValueError("K must be a finite 3x3 and T_WC a finite 4x4 matrix")
-        valid = np.isfinite(depth) & (depth > 0) & (depth <= self.max_depth)
+        valid = valid_depth(depth, self.max_depth)
         n = int(valid.sum())
         if not n:
             return 0

@@ -10,6 +10,7 @@ import time
 
 import numpy as np
 
+from ..geometry import valid_depth
 from .atlanta import AtlantaConfig, AtlantaEstimator, AtlantaFrame
 from ..mapping.frames import Frame
 from .surfel_map import GlobalSurfelMap, SurfelMapConfig
@@ -19,7 +20,8 @@ from .surfels import SurfelConfig, extract_surfels, keyframe_points
 
 class Structure:
     def __init__(self, atlanta: AtlantaConfig | None = None, surfels: SurfelConfig | None = None,
-                 surfel_map: SurfelMapConfig | None = None, seed: int = 0):
+                 surfel_map: SurfelMapConfig | None = None, seed: int = 0, max_depth: float = np.inf):
+        self.max_depth = float(max_depth)  # pixels beyond it (the mapper's max_depth) are not used
         self.estimator = AtlantaEstimator(atlanta, seed=seed)
         self.surfel_cfg = surfels or SurfelConfig()
         self.map = GlobalSurfelMap(surfel_map)
@@ -28,14 +30,19 @@ class Structure:
         self._aligned: tuple[int, Surfels] | None = None
 
     def process(self, frame: Frame) -> dict[str, float]:
-        """Fills ``frame.surfels`` and ``frame.surfel_mask``; returns timings in ms
+        """Fills ``frame.surfels`` and ``frame.surfel_mask`` from the frame's valid depth
+        (``geometry.valid_depth`` with ``max_depth``); returns timings in ms
         (``atlanta``: points, normals and the frame update; ``surfels``: extraction, mask
         and the global merge)."""
         t0 = time.perf_counter()
-        kp = keyframe_points(frame.depth, frame.K, frame.T_WC, self.surfel_cfg)
+        depth = frame.depth
+        valid = valid_depth(depth, self.max_depth)
+        if not valid.all():  # the mapper's rule: no surfel or normal from a pixel it would not train on
+            depth = np.where(valid, depth, 0.0).astype(np.float32)
+        kp = keyframe_points(depth, frame.K, frame.T_WC, self.surfel_cfg)
         local = self.estimator.update(kp.normals_W, frame.T_WC)
         t1 = time.perf_counter()
-        surfels, mask = extract_surfels(frame.depth, frame.K, frame.T_WC, local.frame, self.surfel_cfg, self.rng,
+        surfels, mask = extract_surfels(depth, frame.K, frame.T_WC, local.frame, self.surfel_cfg, self.rng,
                                         frame.frame_id, points=kp)
         frame.surfels, frame.surfel_mask = surfels, mask
         self.map.add(surfels)

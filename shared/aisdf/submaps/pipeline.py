@@ -78,7 +78,7 @@ class SubmapPipeline(SubmapPublishing, SubmapCheckpoints):
         if atlanta:
             from ..structure import Structure
 
-            self.structure = Structure(seed=cfg.seed)
+            self.structure = Structure(seed=cfg.seed, max_depth=cfg.max_depth)
             if atlanta_state:
                 self.structure.load_state_dict(atlanta_state)
         if cfg.torch_threads:
@@ -135,7 +135,7 @@ class SubmapPipeline(SubmapPublishing, SubmapCheckpoints):
         used: a duplicate (sensor, frame_id), too few valid depth pixels."""
         frame = frame_from_keyframe(kf) if isinstance(kf, protocol.Keyframe) else kf
         depth = frame.depth
-        valid = np.isfinite(depth) & (depth > 0) & (depth <= self.cfg.max_depth)
+        valid = geometry.valid_depth(depth, self.cfg.max_depth)
         if int(valid.sum()) < MIN_VALID_PIXELS:
             raise ValueError(f"only {int(valid.sum())} valid depth pixels (need {MIN_VALID_PIXELS})")
         if frame.key in self.frames:
@@ -273,7 +273,7 @@ class SubmapPipeline(SubmapPublishing, SubmapCheckpoints):
         return ((enter <= leave) & (leave >= near) & (enter <= far) & (D > 0)).reshape(H, W)
 
     def _grow_bounds(self, frame: Frame) -> None:
-        self._bounds = grow_bounds(self._bounds, frame)
+        self._bounds = grow_bounds(self._bounds, frame, self.cfg.max_depth)
 
     # ------------------------------------------------------------------ training
     def _pick(self) -> Submap:
