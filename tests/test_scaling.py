@@ -61,8 +61,11 @@ def test_quick_scaling_table(result):
                 assert set(high) == set(by) and high[cfg.source] == r[f"too_high_{k}_pct"]
                 assert all(0 <= v <= 100 for v in high.values())
                 assert high["fused"] <= high["implicit"]  # the fusion only ever lowers an answer
-            ms = r["measured_surface"]  # every keyframe's pixels pooled: some surface, timed
+            ms = r["measured_surface"]  # every keyframe's pixels pooled: some surface, timed, once
             assert ms["voxels"] > 0 and ms["bytes"] > 0 and ms["add_ms_mean"] > 0
+            assert ms["pooled_by"] == ("mapper" if m == "submaps" else "bench")
+            if m == "submaps":  # the mapper's own pool, the one its memory row counts
+                assert ms["bytes"] == mem["measured"]
             assert r["steps_end"] >= r["steps_walk_end"] and r["t_end"] >= r["t_walk_end"] >= n * P
             assert 0 <= r["keyframe_late_s"]["mean"] <= r["keyframe_late_s"]["max"]
         floor = res["runs"][m]["floor"]

@@ -100,6 +100,11 @@ class MappingPipeline:
     # ------------------------------------------------------------------ keyframes
 
     @property
+    def cfg(self):
+        """The training configuration (``SubmapPipeline.cfg`` too: the same interface)."""
+        return self.trainer.cfg
+
+    @property
     def steps(self) -> int:
         return self.trainer.steps
 

@@ -61,7 +61,7 @@ def frame_of(f: dict):
 
 TOO_HIGH_M = 0.05  # an answer this far above the exact SDF promises a planner room that is not there
 # A point's nearest surface is "unmeasured" when the nearest measured point and the surfel map are both
-# farther than |exact SDF| + this: no keyframe saw that surface (README, Scaling: "Where the floor's
+# farther than |exact SDF| + this: no keyframe saw that surface (docs/scaling-notes.md: "Where the floor's
 # remaining error is")
 UNMEASURED_M = 0.05
 
@@ -138,6 +138,17 @@ def measured_of(pipe, pooled: MeasuredSurface):
     return pooled
 
 
+def _pool_record(pipe, pooled: MeasuredSurface | None, add_ms: list[float]) -> dict:
+    """Voxels, bytes and milliseconds per keyframe of the measured surface the answers used,
+    and who pooled it (the mapper, on the clock, or the bench, off it)."""
+    if pooled is None:
+        held, ms, by = pipe.measured, pipe.stats().get("measured"), "mapper"
+    else:
+        held, ms, by = pooled, (float(np.mean(add_ms)) if add_ms else None), "bench"
+    return {"voxels": len(held), "bytes": held.nbytes(), "add_ms_mean": None if ms is None else round(ms, 2),
+            "pooled_by": by}
+
+
 def whole_scorer(seq, frames: list[dict], cfg: ScalingConfig) -> _Scorer:
     from ..metrics import eval_points
 
@@ -185,8 +196,11 @@ def walk(pipe, seq, frames: list[dict], stream_per_kf: float, cfg: ScalingConfig
     scorers: dict[str, _Scorer] = {}
     rec: dict[str, Any] = {"rejected": 0}
     late: list[float] = []  # how long after its time each keyframe was added (a busy mapper is late)
-    max_depth = (pipe.cfg if hasattr(pipe, "cfg") else pipe.trainer.cfg).max_depth
-    measured, measured_ms = MeasuredSurface(max_depth=max_depth), []
+    # The measured surface the answers use: the mapper's own pool when it publishes one (the
+    # submap mapper pools inside add_keyframe, on the clock), else the bench's pool of every
+    # keyframe, built while the clock is paused (an answer no service gives for that mapper).
+    measured = None if serves_measured(pipe) else MeasuredSurface(max_depth=pipe.cfg.max_depth)
+    measured_ms: list[float] = []
     clock = _Clock()
     next_kf, next_period, version = 0, P, 1
     while True:
@@ -198,12 +212,13 @@ def walk(pipe, seq, frames: list[dict], stream_per_kf: float, cfg: ScalingConfig
             except ValueError as e:
                 rec["rejected"] += 1
                 log.info("keyframe %d rejected: %s", next_kf, e)
-            else:  # the scorer's measured surface: its time is reported, not taken from training
-                with clock.pause():
-                    s = time.perf_counter()
-                    f = frames[next_kf]
-                    measured.add(f["depth"], f["K"], f["T_WC"])
-                    measured_ms.append(1e3 * (time.perf_counter() - s))
+            else:  # the bench's pool: its time is reported, not taken from training
+                if measured is not None:
+                    with clock.pause():
+                        s = time.perf_counter()
+                        f = frames[next_kf]
+                        measured.add(f["depth"], f["K"], f["T_WC"])
+                        measured_ms.append(1e3 * (time.perf_counter() - s))
             next_kf += 1
             continue
         if t >= next_period:
@@ -272,8 +287,7 @@ def walk(pipe, seq, frames: list[dict], stream_per_kf: float, cfg: ScalingConfig
         "bytes_per_s_tail": round(sum(p["bytes"] for p in periods if not p["walking"])
                                   / max(1, len(periods) - len(walking)) / P, 1),
         "rooms": rooms, "periods": periods,
-        "measured_surface": {"voxels": len(measured), "bytes": measured.nbytes(),
-                             "add_ms_mean": round(float(np.mean(measured_ms)), 2) if measured_ms else None},
+        "measured_surface": _pool_record(pipe, measured, measured_ms),
     })
     rec["bytes_ratio"] = round(rec["bytes_per_s"] / rec["bytes_per_s_all"], 4) if rec["bytes_per_s_all"] else None
     return rec

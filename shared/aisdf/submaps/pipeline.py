@@ -151,7 +151,9 @@ class SubmapPipeline(SubmapPublishing, SubmapCheckpoints):
         self._grow_bounds(frame)
         self.observed.add(depth, frame.K, frame.T_WC, self.cfg.max_depth)
         if self.measured is not None:
+            t1 = time.perf_counter()
             self.measured.add(depth, frame.K, frame.T_WC)
+            self._timings["measured"].append(1e3 * (time.perf_counter() - t1))
         if self.grid is None:
             self._waiting.append(prepared)
             self._maybe_make_grid(frame)
