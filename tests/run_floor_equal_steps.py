@@ -2,7 +2,7 @@
 followed by --per-kf steps, then --tail steps; the whole-map error of the network alone
 (implicit), the surfel map alone (explicit, unsigned) and the fused answer, and by distance
 to the surface (share of points, mean signed error, mean |error| implicit, fused), in cm.
-Figures of the README's "Surfel bounds" paragraph:
+Figures of docs/scaling-notes.md, "Surfel bounds":
 
     .venv/bin/python tests/run_floor_equal_steps.py --method submaps --training '{"surfel_bounds": false}'
     .venv/bin/python tests/run_floor_equal_steps.py --method submaps
