@@ -126,3 +126,41 @@ def test_mesh_of_a_known_field():
     with pytest.raises(protocol.ProtocolError) as e:
         eng.answer_mesh(protocol.MeshRequest(0.001))
     assert e.value.code == "too_large"
+
+
+@pytest.mark.parametrize("mapper", ["single", "submaps"])
+def test_a_keyframe_holds_its_depth_once(seq, mapper):
+    """The stored frame holds the cleaned depth the training samples (one array, not a raw
+    copy beside it), the caller's frame is left as it was, the memory count does not count
+    the depth twice, and a checkpoint brings back the same keyframes."""
+    from aisdf.submaps.pipeline import SubmapPipeline, restore_pipeline
+
+    p = small() if mapper == "single" else SubmapPipeline.from_settings(
+        "cpu", {"network": {"width": 32}, "n_rays": 20})
+    given = []
+    for i in range(0, 40, 8):
+        f = frame(seq, i)
+        f.depth = f.depth.astype(np.float32)
+        f.depth[:3, :3] = np.nan  # invalid pixels: 0 once stored
+        raw = f.depth.copy()
+        p.add_keyframe(f)
+        assert np.array_equal(f.depth, raw, equal_nan=True)  # the caller's frame: untouched
+        given.append(raw)
+    stored = p.trainer.store.keyframes if mapper == "single" else list(p.frames.values())
+    assert len(stored) == len(given)
+    H, W = given[0].shape
+    for kf, raw in zip(stored, given):
+        assert kf.frame.depth is kf.depth and kf.depth.dtype == np.float32
+        ok = np.isfinite(raw) & (raw > 0)
+        assert np.array_equal(kf.depth, np.where(ok, raw, 0))
+        # depth 4 B and normals 6 B per pixel, the surfel mask 1, the surfels a few hundred bytes
+        assert kf.nbytes() <= H * W * 11 + 4096
+    masks = 0 if mapper == "single" else sum(  # submaps: a pixel mask per keyframe and submap it joined
+        v.pixel_mask.nbytes for sm in p.submaps.values() for v in sm.trainer.store.keyframes)
+    assert p.memory()["keyframes"] == sum(k.nbytes() for k in stored) + masks
+    p.step()
+    back = restore_pipeline(p.checkpoint())
+    again = back.trainer.store.keyframes if mapper == "single" else list(back.frames.values())
+    assert [k.frame.key for k in again] == [k.frame.key for k in stored]
+    for a, b in zip(again, stored):
+        assert np.array_equal(a.depth, b.depth) and a.frame.depth is a.depth

@@ -193,7 +193,7 @@ class MappingPipeline:
     def memory(self) -> dict[str, int]:
         """Bytes held, by part: keyframes (depth, normals, masks, surfels), model (weights and
         AdamW moments), observed space."""
-        kf = sum(k.frame.nbytes() + k.depth.nbytes + k.normals_W.nbytes for k in self.trainer.store.keyframes)
+        kf = sum(k.nbytes() for k in self.trainer.store.keyframes)
         n_par = sum(p.numel() for p in self.trainer.net.parameters())
         return {"keyframes": int(kf), "model": int(3 * 4 * n_par), "observed": int(self.observed.nbytes())}
 

@@ -10,7 +10,7 @@ on has the mean estimate of the others (1.0 when there is none).
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -92,12 +92,21 @@ class Keyframe:
 
     @classmethod
     def make(cls, frame: Frame, max_depth: float) -> "Keyframe":
+        """The keyframe of ``frame``: its depth cleaned (``clean_depth``), world normals. The
+        stored frame is a copy of ``frame`` holding the cleaned depth (one array, not two:
+        every reader of a keyframe's depth, checkpoints included, takes 0 as invalid and
+        applies the same ``max_depth``); ``frame`` itself is left as it was."""
         depth = clean_depth(frame.depth, max_depth)
         if frame.surfel_mask is not None and frame.surfel_mask.shape != depth.shape:
             raise ValueError(f"surfel_mask shape {frame.surfel_mask.shape} != depth shape {depth.shape}")
         n_C = geometry.normals_from_depth(depth, frame.K)
         n_W = geometry.rotate(np.asarray(frame.T_WC, np.float64), n_C).astype(np.float16)
-        return cls(frame, depth, n_W)
+        return cls(replace(frame, depth=depth), depth, n_W)
+
+    def nbytes(self) -> int:
+        """Bytes held: the frame's arrays, the normals, and the depth once when shared."""
+        n = self.frame.nbytes() + self.normals_W.nbytes
+        return int(n if self.depth is self.frame.depth else n + self.depth.nbytes)
 
 
 class KeyframeStore:

@@ -351,7 +351,7 @@ class SubmapPipeline(SubmapPublishing, SubmapCheckpoints):
         return f, g
 
     def memory(self) -> dict[str, int]:
-        kf = sum(k.frame.nbytes() + k.depth.nbytes + k.normals_W.nbytes for k in self.frames.values())
+        kf = sum(k.nbytes() for k in self.frames.values())
         masks = sum(v.pixel_mask.nbytes for sm in self.submaps.values() for v in sm.trainer.store.keyframes
                     if v.pixel_mask is not None)
         n_par = sum(p.numel() for sm in self.submaps.values() for p in sm.trainer.net.parameters())
