@@ -96,6 +96,43 @@ def normals_from_depth(depth: np.ndarray, K: np.ndarray, max_jump: float = 0.1) 
     return n
 
 
+def normals_at(depth: np.ndarray, K: np.ndarray, v: np.ndarray, u: np.ndarray, max_jump: float = 0.1) -> np.ndarray:
+    """``normals_from_depth(depth, K, max_jump)[v, u]`` for a few pixels (N,), computed from
+    their four neighbours only: (N, 3) camera-frame normals, NaN where that gives NaN
+    (the image's border, invalid neighbours, occlusion boundaries). What training needs of a
+    keyframe's normals, at the pixels it samples, without holding an image of them."""
+    d = np.asarray(depth, dtype=np.float64)
+    H, W = d.shape
+    v, u = np.asarray(v, np.int64).reshape(-1), np.asarray(u, np.int64).reshape(-1)
+    n = np.full((len(v), 3), np.nan)
+    inner = (v >= 1) & (v <= H - 2) & (u >= 1) & (u <= W - 2)
+    if not inner.any():
+        return n
+    vi, ui = v[inner], u[inner]
+    fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
+
+    def point(vv: np.ndarray, uu: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        z = d[vv, uu]
+        p = np.stack([(uu - cx) / fx, (vv - cy) / fy, np.ones(len(z))], axis=-1) * z[:, None]
+        p[~(z > 0)] = np.nan
+        return p, z
+
+    pc, dc = point(vi, ui)
+    (pr, zr), (pl, zl) = point(vi, ui + 1), point(vi, ui - 1)
+    (pd, zd), (pu, zu) = point(vi + 1, ui), point(vi - 1, ui)
+    c = np.cross(pr - pl, pd - pu)
+    norm = np.linalg.norm(c, axis=-1, keepdims=True)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        c = c / norm
+    jump = np.maximum.reduce([np.abs(zr - dc), np.abs(zl - dc), np.abs(zd - dc), np.abs(zu - dc)])
+    bad = ~(norm[:, 0] > 0) | (jump > max_jump * np.maximum(dc, 1e-6)) | ~(dc > 0)
+    flip = np.einsum("nc,nc->n", c, pc) > 0
+    c[flip] *= -1
+    c[bad] = np.nan
+    n[inner] = c
+    return n
+
+
 def kdtree(points: np.ndarray, leafsize: int = 16):
     """A ``scipy.spatial.cKDTree`` of (N, k) points, built with the sliding-midpoint rule
     (``balanced_tree=False``). Why: ``aisdf.network`` turns on flush-to-zero / denormals-

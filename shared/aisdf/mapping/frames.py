@@ -75,37 +75,45 @@ def clean_depth(depth: np.ndarray, max_depth: float) -> np.ndarray:
 
 @dataclass
 class Keyframe:
-    """A stored frame with what sampling needs: cleaned depth, world normals (float16, NaN = none)."""
+    """A stored frame with what sampling needs: its cleaned depth (normals are computed at
+    the sampled pixels, ``geometry.normals_at``)."""
 
     frame: Frame
     depth: np.ndarray
-    normals_W: np.ndarray
     loss: float | None = None
-    # Submaps: rays only from these pixels (those whose ray meets the submap), and samples
-    # only where ``region(points, grow) -> bool`` (the submap's box grown by ``grow``).
-    pixel_mask: np.ndarray | None = None
+    # Submaps: rays only from the pixels of ``pixel_mask`` (those whose ray meets the
+    # submap; held as packed bits, one per pixel), and samples only where
+    # ``region(points, grow) -> bool`` (the submap's box grown by ``grow``).
+    pixel_bits: np.ndarray | None = None
     region: object = None
 
     def view(self, pixel_mask: np.ndarray | None, region) -> "Keyframe":
         """The same keyframe (arrays shared, not copied) for a submap's store."""
-        return Keyframe(self.frame, self.depth, self.normals_W, None, pixel_mask, region)
+        bits = None if pixel_mask is None else np.packbits(np.asarray(pixel_mask, bool).reshape(-1))
+        return Keyframe(self.frame, self.depth, None, bits, region)
+
+    @property
+    def pixel_mask(self) -> np.ndarray | None:
+        """(H, W) bool: the pixels a submap's rays may come from (None: all of them)."""
+        if self.pixel_bits is None:
+            return None
+        H, W = self.depth.shape
+        return np.unpackbits(self.pixel_bits, count=H * W).reshape(H, W).view(bool)
 
     @classmethod
     def make(cls, frame: Frame, max_depth: float) -> "Keyframe":
-        """The keyframe of ``frame``: its depth cleaned (``clean_depth``), world normals. The
+        """The keyframe of ``frame``: its depth cleaned (``clean_depth``). The
         stored frame is a copy of ``frame`` holding the cleaned depth (one array, not two:
         every reader of a keyframe's depth, checkpoints included, takes 0 as invalid and
         applies the same ``max_depth``); ``frame`` itself is left as it was."""
         depth = clean_depth(frame.depth, max_depth)
         if frame.surfel_mask is not None and frame.surfel_mask.shape != depth.shape:
             raise ValueError(f"surfel_mask shape {frame.surfel_mask.shape} != depth shape {depth.shape}")
-        n_C = geometry.normals_from_depth(depth, frame.K)
-        n_W = geometry.rotate(np.asarray(frame.T_WC, np.float64), n_C).astype(np.float16)
-        return cls(replace(frame, depth=depth), depth, n_W)
+        return cls(replace(frame, depth=depth), depth)
 
     def nbytes(self) -> int:
-        """Bytes held: the frame's arrays, the normals, and the depth once when shared."""
-        n = self.frame.nbytes() + self.normals_W.nbytes
+        """Bytes held: the frame's arrays, and the depth once when shared."""
+        n = self.frame.nbytes()
         return int(n if self.depth is self.frame.depth else n + self.depth.nbytes)
 
 

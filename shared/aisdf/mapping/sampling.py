@@ -109,7 +109,10 @@ def sample_frame(kf: Keyframe, slot: int, cfg: TrainingConfig, rng: np.random.Ge
     kind = np.full((R, S), FREE, np.int8)
     kind[:, 0] = SURFACE
     target = np.full((R, S, 3), np.nan, np.float32)
-    target[:, 0] = kf.normals_W[v, u]
+    # the sampled pixels' normals (geometry.normals_at, computed here rather than held per
+    # keyframe), in half precision as they were once stored
+    target[:, 0] = geometry.rotate(np.asarray(frame.T_WC, np.float64),
+                                   geometry.normals_at(kf.depth, K, v, u)).astype(np.float16)
     parts = [Batch(
         pts_W.reshape(-1, 3).astype(np.float32), z.reshape(-1).astype(np.float32),
         np.repeat(D, S).astype(np.float32), kind.reshape(-1), target.reshape(-1, 3),

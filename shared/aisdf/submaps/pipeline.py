@@ -352,8 +352,8 @@ class SubmapPipeline(SubmapPublishing, SubmapCheckpoints):
 
     def memory(self) -> dict[str, int]:
         kf = sum(k.nbytes() for k in self.frames.values())
-        masks = sum(v.pixel_mask.nbytes for sm in self.submaps.values() for v in sm.trainer.store.keyframes
-                    if v.pixel_mask is not None)
+        masks = sum(v.pixel_bits.nbytes for sm in self.submaps.values() for v in sm.trainer.store.keyframes
+                    if v.pixel_bits is not None)
         n_par = sum(p.numel() for sm in self.submaps.values() for p in sm.trainer.net.parameters())
         return {"keyframes": int(kf + masks), "model": int(3 * 4 * n_par), "observed": int(self.observed.nbytes()),
                 "measured": 0 if self.measured is None else self.measured.nbytes()}
