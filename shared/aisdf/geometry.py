@@ -101,7 +101,7 @@ def normals_at(depth: np.ndarray, K: np.ndarray, v: np.ndarray, u: np.ndarray, m
     their four neighbours only: (N, 3) camera-frame normals, NaN where that gives NaN
     (the image's border, invalid neighbours, occlusion boundaries). What training needs of a
     keyframe's normals, at the pixels it samples, without holding an image of them."""
-    d = np.asarray(depth, dtype=np.float64)
+    d = np.asarray(depth)  # only the stencils' pixels are converted to float64
     H, W = d.shape
     v, u = np.asarray(v, np.int64).reshape(-1), np.asarray(u, np.int64).reshape(-1)
     n = np.full((len(v), 3), np.nan)
@@ -110,23 +110,26 @@ def normals_at(depth: np.ndarray, K: np.ndarray, v: np.ndarray, u: np.ndarray, m
         return n
     vi, ui = v[inner], u[inner]
     fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
-
-    def point(vv: np.ndarray, uu: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        z = d[vv, uu]
-        p = np.stack([(uu - cx) / fx, (vv - cy) / fy, np.ones(len(z))], axis=-1) * z[:, None]
-        p[~(z > 0)] = np.nan
-        return p, z
-
-    pc, dc = point(vi, ui)
-    (pr, zr), (pl, zl) = point(vi, ui + 1), point(vi, ui - 1)
-    (pd, zd), (pu, zu) = point(vi + 1, ui), point(vi - 1, ui)
-    c = np.cross(pr - pl, pd - pu)
-    norm = np.linalg.norm(c, axis=-1, keepdims=True)
+    # the pixel and its right, left, lower and upper neighbours, back-projected as backproject does
+    vv = np.stack([vi, vi, vi, vi + 1, vi - 1])
+    uu = np.stack([ui, ui + 1, ui - 1, ui, ui])
+    z = d[vv, uu].astype(np.float64)  # (5, M)
+    x, y = (uu - cx) / fx * z, (vv - cy) / fy * z
+    none = ~(z > 0)
+    x[none], y[none] = np.nan, np.nan
+    zn = np.where(none, np.nan, z)
+    # tangents along x and y, their cross product and its length, with np.cross's and
+    # np.linalg.norm's arithmetic (the same bits as normals_from_depth)
+    ax, ay, az = x[1] - x[2], y[1] - y[2], zn[1] - zn[2]
+    bx, by, bz = x[3] - x[4], y[3] - y[4], zn[3] - zn[4]
+    c = np.stack([ay * bz - az * by, az * bx - ax * bz, ax * by - ay * bx], axis=-1)
+    norm = np.sqrt(c[:, 0] * c[:, 0] + c[:, 1] * c[:, 1] + c[:, 2] * c[:, 2])
     with np.errstate(invalid="ignore", divide="ignore"):
-        c = c / norm
-    jump = np.maximum.reduce([np.abs(zr - dc), np.abs(zl - dc), np.abs(zd - dc), np.abs(zu - dc)])
-    bad = ~(norm[:, 0] > 0) | (jump > max_jump * np.maximum(dc, 1e-6)) | ~(dc > 0)
-    flip = np.einsum("nc,nc->n", c, pc) > 0
+        c = c / norm[:, None]
+    dc = z[0]
+    jump = np.abs(z[1:] - dc).max(axis=0)
+    bad = ~(norm > 0) | (jump > max_jump * np.maximum(dc, 1e-6)) | ~(dc > 0)
+    flip = (c[:, 0] * x[0] + c[:, 1] * y[0]) + c[:, 2] * zn[0] > 0
     c[flip] *= -1
     c[bad] = np.nan
     n[inner] = c
