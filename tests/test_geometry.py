@@ -51,6 +51,28 @@ def test_normals_are_nan_across_depth_jumps():
     np.testing.assert_allclose(N[5, 5], [0, 0, -1])
 
 
+def test_normals_at_sampled_pixels_are_the_normal_image_there():
+    """Training computes normals only at the pixels it samples (``normals_at``); they are the
+    normal image's (``normals_from_depth``) to the bit, NaN where it is NaN: the border,
+    invalid pixels and their neighbours, depth jumps; float32 depth as keyframes hold it."""
+    rng = np.random.default_rng(3)
+    H, W = 30, 40
+    K = g.intrinsics(40.0, 42.0, 19.3, 14.8)
+    n_true = np.array([0.2, -0.4, -1.0])
+    depth = (-2.0 / (g.ray_dirs_C(K, H, W) @ (n_true / np.linalg.norm(n_true)))).astype(np.float32)
+    depth += rng.normal(0, 0.003, depth.shape).astype(np.float32)  # noise: normals differ pixel to pixel
+    depth[5:8, 10:14] = 0.0  # invalid
+    depth[:, 25:] += 1.0  # a jump
+    full = g.normals_from_depth(depth, K)
+    v, u = np.mgrid[0:H, 0:W]
+    at = g.normals_at(depth, K, v.ravel(), u.ravel())
+    assert np.array_equal(at, full.reshape(-1, 3), equal_nan=True)
+    assert np.isnan(at).any(axis=1).sum() > 2 * (H + W)  # border, hole and jump: some NaN
+    pick = rng.integers(0, H * W, 50)  # any order, repeats
+    assert np.array_equal(g.normals_at(depth, K, pick // W, pick % W), full.reshape(-1, 3)[pick], equal_nan=True)
+    assert g.normals_at(depth, K, np.array([0]), np.array([0])).shape == (1, 3)
+
+
 def test_chomp_cost_values():
     e = 2.0
     np.testing.assert_allclose(chomp_cost(np.array([-1.0, 0.0, 0.5, 2.0, 3.0]), e),
