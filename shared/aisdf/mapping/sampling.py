@@ -89,8 +89,9 @@ def sample_frame(kf: Keyframe, slot: int, cfg: TrainingConfig, rng: np.random.Ge
     frame = kf.frame
     surfels = frame.surfels if (cfg.uses_surfels and frame.surfels is not None) else None
     valid = kf.depth > 0
-    if kf.pixel_mask is not None:
-        valid = valid & kf.pixel_mask
+    mask = kf.pixel_mask  # unpacked once
+    if mask is not None:
+        valid = valid & mask
     n_rays = cfg.n_rays
     if cfg.surfel_mask and surfels is not None:
         if frame.surfel_mask is not None:
