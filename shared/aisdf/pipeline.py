@@ -33,14 +33,12 @@ def frame_from_keyframe(kf: protocol.Keyframe) -> Frame:
 def grow_bounds(bounds: np.ndarray | None, frame: Frame, max_depth: float = np.inf) -> np.ndarray:
     """(2, 3) world box of what is seen so far, grown by a keyframe's valid points
     (``geometry.valid_depth``) and its camera."""
-    from .geometry import backproject, transform
-
     d = frame.depth[::4, ::4]
     d = np.where(geometry.valid_depth(d, max_depth), d, 0.0)
     K = frame.K.copy()
     K[:2] /= 4
-    pts = backproject(d, K).reshape(-1, 3)
-    pts = transform(frame.T_WC, pts[np.isfinite(pts[:, 0])])
+    pts = geometry.backproject(d, K).reshape(-1, 3)
+    pts = geometry.transform(frame.T_WC, pts[np.isfinite(pts[:, 0])])
     pts = np.concatenate([pts, frame.T_WC[None, :3, 3]])
     lo, hi = pts.min(0), pts.max(0)
     if bounds is None:
@@ -191,7 +189,7 @@ class MappingPipeline:
         return out
 
     def memory(self) -> dict[str, int]:
-        """Bytes held, by part: keyframes (depth, normals, masks, surfels), model (weights and
+        """Bytes held, by part: keyframes (depth, surfel masks, surfels), model (weights and
         AdamW moments), observed space."""
         kf = sum(k.nbytes() for k in self.trainer.store.keyframes)
         n_par = sum(p.numel() for p in self.trainer.net.parameters())

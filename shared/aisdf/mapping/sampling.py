@@ -106,14 +106,14 @@ def sample_frame(kf: Keyframe, slot: int, cfg: TrainingConfig, rng: np.random.Ge
     D = kf.depth.reshape(-1)[pix].astype(np.float64)
     z = ray_depths(D, rng, cfg.n_gaussian, cfg.gaussian_std, cfg.n_stratified, cfg.min_depth, cfg.depth_margin)
     R, S = z.shape
-    pts_W = geometry.transform(np.asarray(frame.T_WC, np.float64), dirs_C[:, None, :] * z[..., None])
+    T_WC = np.asarray(frame.T_WC, np.float64)
+    pts_W = geometry.transform(T_WC, dirs_C[:, None, :] * z[..., None])
     kind = np.full((R, S), FREE, np.int8)
     kind[:, 0] = SURFACE
     target = np.full((R, S, 3), np.nan, np.float32)
     # the sampled pixels' normals (geometry.normals_at, computed here rather than held per
     # keyframe), in half precision as they were once stored
-    target[:, 0] = geometry.rotate(np.asarray(frame.T_WC, np.float64),
-                                   geometry.normals_at(kf.depth, K, v, u)).astype(np.float16)
+    target[:, 0] = geometry.rotate(T_WC, geometry.normals_at(kf.depth, K, v, u)).astype(np.float16)
     parts = [Batch(
         pts_W.reshape(-1, 3).astype(np.float32), z.reshape(-1).astype(np.float32),
         np.repeat(D, S).astype(np.float32), kind.reshape(-1), target.reshape(-1, 3),
