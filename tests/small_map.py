@@ -6,15 +6,17 @@ from aisdf.pipeline import MappingPipeline
 from aisdf.synthetic import SyntheticSequence
 
 
-def train_small_map():
-    """(sequence, the keyframes' frame dicts, the trained MappingPipeline)."""
+def train_small_map(measured: bool = True):
+    """(sequence, the keyframes' frame dicts, the trained MappingPipeline). ``measured``: the
+    mapper pools and sends measured points (protocol 1.5, the default)."""
     seq = SyntheticSequence(building="atlanta", n_frames=120, H=60, W=80, seed=1)
     # The paper's bounds: with surfel bounds (the mapper's default) this 30-step toy network's
     # fused field bakes with a 99th-percentile error of 5.5 cm against the exact fused answer
     # (0.16 cm for the network alone): min(network, surfel distance) switches back and forth where
     # the two nearly agree and their gradients do not, which the bake's block-centre check misses.
     # Left for the baked field's owner (closing note of 2026-12-02).
-    p = MappingPipeline.from_settings("cpu", {"network": {"width": 32}, "n_rays": 20}, surfel_bounds=False)
+    p = MappingPipeline.from_settings("cpu", {"network": {"width": 32}, "n_rays": 20}, surfel_bounds=False,
+                                      measured=measured)
     frames = []
     for i in range(0, 120, 20):
         f = seq.frame(i)

@@ -55,6 +55,8 @@ def test_query_service_bakes_the_map_and_answers_planner_fields(small_map):
                 "observed": True, "collision_epsilon": 0.3}, 30.0)
             assert status == "ok", msg
             assert msg["baked"] is True and msg["map_version"] == 1
+            # 1.5: the one-network map's measured points reached the service and its answers use them.
+            assert snap.measured is not None and info(s)["measured_points"] == len(snap.measured["points"]) > 1000
             # The same map baked in-process answers the same (the wire carries float32).
             e = QueryEngine(device="cpu")
             e.set_weights(protocol.WeightSnapshot.from_msg(protocol.unpack(protocol.pack(snap.to_msg()))))

@@ -22,3 +22,14 @@ def test_queue_is_bounded_and_bad_keyframes_are_counted():
     assert [k.frame_id for k, _ in node.pending] == [3, 4]
     assert node.counts == {"received": 7, "rejected": 2, "dropped": 3, "accepted": 0, "duplicates": 0}
     assert node.pipeline.n_keyframes == 0  # nothing reached the map
+
+
+def test_measured_setting_reaches_both_mappers():
+    """``measured`` (default on): both mappers pool measured points (1.4 with submaps, 1.5 with
+    one network); off, neither does; ``submap.measured: false`` turns off the submaps' as in 1.4."""
+    def pooled(**kw):
+        return MapperNode(MapperConfig(preset="cpu", **kw), session=None).pipeline.measured is not None
+
+    assert pooled() and pooled(submaps=False)
+    assert not pooled(measured=False) and not pooled(submaps=False, measured=False)
+    assert not pooled(submap={"measured": False}) and pooled(submaps=False, submap={"measured": False})

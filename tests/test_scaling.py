@@ -30,7 +30,7 @@ def test_quick_scaling_table(result):
     md = (out / "scaling.md").read_text()
     assert "| step time mean / p95 (ms) |" in md and "room7" in md and "implicit answer" in md
     assert "| answers > 5 cm above the truth (served), end of the walk / +2 s (% of points) |" in md
-    assert ("| fused with the measured surface (served by the submap mapper since 1.4): error, end of the walk / "
+    assert ("| fused with the measured surface (served since 1.4 with submaps, 1.5 with one network): error, end of the walk / "
             "+2 s (cm) |") in md and "fused answer: end of the walk" in md
     assert cfg.source == "served"  # the criteria judge query/sdf's default answer for each mapper
     n, P = cfg.keyframes, cfg.period_s
@@ -47,15 +47,15 @@ def test_quick_scaling_table(result):
             assert 0 < r["bytes_per_s"] <= r["bytes_per_s_all"]
             mem = r["memory_end"]
             assert {"keyframes", "model", "observed"} <= set(mem) and all(v > 0 for k, v in mem.items() if k != "measured")
-            assert (mem.get("measured", 0) > 0) == (m == "submaps")  # the submap mapper pools measured points
+            assert mem["measured"] > 0  # both mappers pool measured points (1.4 submaps, 1.5 one network)
             assert r["memory_bytes"] == sum(mem.values()) and r["memory_per_keyframe"] == r["memory_bytes"] // n
             for k in ("walk_end", "end"):
                 assert math.isfinite(r[f"error_{k}_cm"]) and 0 < r[f"error_{k}_cm"] < 200
                 by = r[f"error_{k}_by_source_cm"]  # the served answer (judged), 1.3's fused answer, the
                 # network alone, and the fused answer with the measured surface (structure.measured)
                 assert set(by) == {"served", "fused", "implicit", "measured"} and by[cfg.source] == r[f"error_{k}_cm"]
-                # the submap mapper serves the measured answer (1.4), the one-network mapper 1.3's
-                assert by["served"] == by["measured" if m == "submaps" else "fused"]
+                # both mappers send measured points: served is the measured answer (1.4, 1.5)
+                assert by["served"] == by["measured"]
                 assert all(math.isfinite(v) and 0 < v < 200 for v in by.values())
                 high = r[f"too_high_{k}_by_source_pct"]  # answers > 5 cm above the exact SDF, % of points
                 assert set(high) == set(by) and high[cfg.source] == r[f"too_high_{k}_pct"]
@@ -63,9 +63,7 @@ def test_quick_scaling_table(result):
                 assert high["fused"] <= high["implicit"]  # the fusion only ever lowers an answer
             ms = r["measured_surface"]  # every keyframe's pixels pooled: some surface, timed, once
             assert ms["voxels"] > 0 and ms["bytes"] > 0 and ms["add_ms_mean"] > 0
-            assert ms["pooled_by"] == ("mapper" if m == "submaps" else "bench")
-            if m == "submaps":  # the mapper's own pool, the one its memory row counts
-                assert ms["bytes"] == mem["measured"]
+            assert ms["pooled_by"] == "mapper" and ms["bytes"] == mem["measured"]  # its own pool, counted
             assert r["steps_end"] >= r["steps_walk_end"] and r["t_end"] >= r["t_walk_end"] >= n * P
             assert 0 <= r["keyframe_late_s"]["mean"] <= r["keyframe_late_s"]["max"]
         floor = res["runs"][m]["floor"]

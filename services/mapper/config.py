@@ -27,6 +27,10 @@ class MapperConfig(ServiceConfig):
     submaps: bool = Field(True, description="one network per submap (protocol 1.3: map/submaps/<id> and map/index, "
                           "only what changed each period); false = one network for the whole map (map/weights)")
     submap: SubmapConfig = Field(default_factory=SubmapConfig, description="submap cells and step sharing")
+    measured: bool = Field(True, description="pool the keyframes' depth pixels into 10 cm voxels and publish the "
+                           "points with the map, for the query service's fused answers (protocol 1.4 with submaps, "
+                           "1.5 with one network); false = no points (submap.measured: false also turns them off "
+                           "for submaps, as in 1.4)")
     queue_max: int = Field(16, ge=1, description="keyframes waiting to be trained on; the oldest is dropped beyond")
     snapshot_period_s: float = Field(1.0, gt=0, description="how often weights (and surfels) are published")
     checkpoint_dir: Path | None = Field(None, description="where the map is checkpointed and resumed from")

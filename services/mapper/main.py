@@ -56,12 +56,13 @@ class MapperNode:
         self.session = session
         self.ns = cfg.namespace
         if pipeline is None and cfg.submaps:
+            sub = cfg.submap.model_copy(update={"measured": cfg.submap.measured and cfg.measured})
             pipeline = SubmapPipeline.from_settings(cfg.preset, cfg.training, atlanta=cfg.atlanta,
                                                     surfel_mask=cfg.surfel_mask, surfel_loss=cfg.surfel_loss,
-                                                    surfel_bounds=cfg.surfel_bounds, submaps=cfg.submap)
+                                                    surfel_bounds=cfg.surfel_bounds, submaps=sub)
         self.pipeline = pipeline or MappingPipeline.from_settings(
             cfg.preset, cfg.training, atlanta=cfg.atlanta, surfel_mask=cfg.surfel_mask, surfel_loss=cfg.surfel_loss,
-            surfel_bounds=cfg.surfel_bounds)
+            surfel_bounds=cfg.surfel_bounds, measured=cfg.measured)
         self.pending: collections.deque = collections.deque()
         self.lock = threading.Lock()
         self.counts = {"received": 0, "rejected": 0, "dropped": 0, "accepted": 0, "duplicates": 0}

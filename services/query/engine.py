@@ -41,6 +41,7 @@ from aisdf.collision import chomp_cost
 from aisdf.structure.fusion import DEFAULT_FUSE_RADIUS
 from aisdf.network import build_model, load_numpy_state
 from aisdf.observed import ObservedGrid
+from aisdf.structure.measured import MeasuredPoints
 from aisdf.submaps.field import blend
 from aisdf.submaps.grid import SubmapGrid, parse_cell_id
 from aisdf.structure.surfel_types import Surfels
@@ -111,6 +112,8 @@ class QueryEngine:
         if cur is not None and order <= cur.order:
             return False
         net, bounds, observed = self._load(snap)
+        # Protocol 1.5: a one-network map's measured points (built here, outside the lock).
+        measured = MeasuredPoints(snap.measured["points"]) if snap.measured is not None and self.use_measured else None
         with self._lock:
             cur = self._state
             if cur is not None and order <= cur.order:
@@ -118,7 +121,8 @@ class QueryEngine:
             sv, surf = self._surfels if self._surfels else ((0, -1), None)
             if sv[0] < snap.epoch:  # surfels of an older mapper incarnation: not this map's
                 surf, sv = None, (0, -1)
-            self._state = MapState(snap.version, snap.step, net, bounds, surf, sv[1], snap.epoch, observed)
+            self._state = MapState(snap.version, snap.step, net, bounds, surf, sv[1], snap.epoch, observed,
+                                   measured=measured)
             self.baker.map_arrived(self._state)
         return True
 

@@ -252,9 +252,11 @@ class QueryNode:
                 "lag": self.engine.lag(), "answered": self.answered, "errors": self.errors, "busy": self.busy,
                 "queued": self._sdf_jobs.qsize(),
                 "submaps": len(st.submaps.submaps) if st is not None and st.submaps is not None else None,
-                # (1.4: counted once per submap holding them, as published; the union keeps copies once)
-                "measured_points": sum(len(s.measured) for s in st.submaps.submaps.values() if s.measured is not None)
-                if st is not None and st.submaps is not None else 0,
+                # (1.4: counted once per submap holding them, as published; the union keeps copies once;
+                # 1.5: a one-network map's points)
+                "measured_points": 0 if st is None else (
+                    sum(len(s.measured) for s in st.submaps.submaps.values() if s.measured is not None)
+                    if st.submaps is not None else (0 if st.measured is None else len(st.measured))),
                 "fetched": self.fetched}
 
     def stop(self) -> None:

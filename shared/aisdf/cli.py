@@ -44,6 +44,8 @@ def _bench(args) -> None:
 
 
 def main(argv: list[str] | None = None) -> None:
+    from .bench.query_map import MAPPERS  # (numpy and the protocol; the heavy imports stay in the commands)
+
     p = argparse.ArgumentParser(prog="aisdf", description="AiSDF: online Atlanta-world neural SDF mapping service.")
     p.add_argument("--version", action="version", version=f"%(prog)s {__version__}")
     p.add_argument("--log-level", default="WARNING", choices=["DEBUG", "INFO", "WARNING", "ERROR"])
@@ -93,9 +95,9 @@ def main(argv: list[str] | None = None) -> None:
     q.add_argument("--threads", type=int, help="torch threads per evaluation, in the service and in-process "
                    "(default 1, the service's)")
     q.add_argument("--bake-threads", type=int, default=2, help="threads evaluating the network while baking")
-    q.add_argument("--mapper", choices=["submaps", "single"], default="submaps",
+    q.add_argument("--mapper", choices=list(MAPPERS), default="submaps",
                    help="the map's mapper: a network per submap with measured points (the service's default; "
-                   "fused answers are protocol 1.4's) or one network (1.3's fused answer)")
+                   "fused answers are protocol 1.4's) or one network (with its measured points too, protocol 1.5)")
     q.add_argument("--train-steps", type=int, help="training steps of the demo map (default 1200 with submaps, "
                    "900 with one network: about what the demo's mapper makes in 180 s)")
     q.add_argument("--planners", type=int, default=8)

@@ -21,6 +21,7 @@ from .mapping.frames import Frame
 from .mapping.presets import training_config
 from .mapping.trainer import Trainer
 from .observed import ObservedSpace
+from .structure.measured import MeasuredSurface
 from .structure.surfel_types import Surfels
 
 MIN_VALID_PIXELS = 64
@@ -58,7 +59,8 @@ def surfel_map_message(structure, version: int) -> protocol.SurfelMap | None:
 
 
 class MappingPipeline:
-    def __init__(self, trainer: Trainer, atlanta: bool = True, atlanta_state: dict | None = None):
+    def __init__(self, trainer: Trainer, atlanta: bool = True, atlanta_state: dict | None = None,
+                 measured: bool = True):
         self.trainer = trainer
         self.atlanta_on = atlanta
         self.structure = None
@@ -77,18 +79,22 @@ class MappingPipeline:
         self._bounds: np.ndarray | None = None
         self.last_ids: set[int] = set()
         self.observed = ObservedSpace()
+        # Protocol 1.5: every keyframe's depth pixels pooled into 10 cm voxels, sent with each
+        # snapshot (the query service's fused answers use them, as a submap mapper's since 1.4).
+        self.measured = MeasuredSurface(max_depth=trainer.cfg.max_depth) if measured else None
 
     @classmethod
     def from_settings(cls, preset: str = "auto", training: dict[str, Any] | None = None, atlanta: bool = True,
                       surfel_mask: bool = True, surfel_loss: bool = True,
-                      surfel_bounds: bool = True) -> "MappingPipeline":
+                      surfel_bounds: bool = True, measured: bool = True) -> "MappingPipeline":
         """Preset + overrides; the Table II switches (and ``surfel_bounds``, beyond the paper)
-        only matter with ``atlanta`` on."""
+        only matter with ``atlanta`` on. ``measured``: pool the depth pixels and publish them
+        (protocol 1.5; false: 1.4's snapshots, without points)."""
         overrides = dict(training or {})
         overrides.setdefault("surfel_bounds", bool(atlanta and surfel_bounds))
         overrides.setdefault("surfel_mask", bool(atlanta and surfel_mask))
         overrides.setdefault("surfel_loss", bool(atlanta and surfel_loss))
-        return cls(Trainer(training_config(preset, **overrides)), atlanta=atlanta)
+        return cls(Trainer(training_config(preset, **overrides)), atlanta=atlanta, measured=measured)
 
     def describe(self) -> str:
         c = self.trainer.cfg
@@ -130,6 +136,10 @@ class MappingPipeline:
         t = time.perf_counter()
         self.observed.add(depth, frame.K, frame.T_WC, self.trainer.cfg.max_depth)
         self._timings["observed"].append(1e3 * (time.perf_counter() - t))
+        if self.measured is not None:
+            t = time.perf_counter()
+            self.measured.add(depth, frame.K, frame.T_WC)
+            self._timings["measured"].append(1e3 * (time.perf_counter() - t))
 
     def _grow_bounds(self, frame: Frame) -> None:
         self._bounds = grow_bounds(self._bounds, frame, self.trainer.cfg.max_depth)
@@ -163,7 +173,14 @@ class MappingPipeline:
         if self._bounds is not None:
             model["bounds"] = self._bounds.tolist()
         return protocol.WeightSnapshot(version, self.steps, time.time(), model, self.trainer.state_numpy(),
-                                       observed=self.observed.message())
+                                       observed=self.observed.message(),
+                                       measured=None if self.measured is None else self.measured.message())
+
+    def measured_points(self) -> np.ndarray:
+        """(M, 3) float32: the measured points every snapshot carries (none without pooling)."""
+        if self.measured is None:
+            return np.zeros((0, 3), np.float32)
+        return self.measured.message()["points"]
 
     def surfels(self) -> Surfels | None:
         return None if self.structure is None else self.structure.global_surfels()
@@ -190,10 +207,11 @@ class MappingPipeline:
 
     def memory(self) -> dict[str, int]:
         """Bytes held, by part: keyframes (depth, surfel masks, surfels), model (weights and
-        AdamW moments), observed space."""
+        AdamW moments), observed space, measured points (the pool's voxels)."""
         kf = sum(k.nbytes() for k in self.trainer.store.keyframes)
         n_par = sum(p.numel() for p in self.trainer.net.parameters())
-        return {"keyframes": int(kf), "model": int(3 * 4 * n_par), "observed": int(self.observed.nbytes())}
+        return {"keyframes": int(kf), "model": int(3 * 4 * n_par), "observed": int(self.observed.nbytes()),
+                "measured": 0 if self.measured is None else self.measured.nbytes()}
 
     # ------------------------------------------------------------------ checkpoints
 
@@ -201,11 +219,18 @@ class MappingPipeline:
         return {"trainer": self.trainer.checkpoint(), "atlanta": self.atlanta_on,
                 "structure": None if self.structure is None else self.structure.state_dict(),
                 "bounds": None if self._bounds is None else self._bounds.tolist(),
-                "observed": self.observed.state_dict()}
+                "observed": self.observed.state_dict(),
+                "measured": None if self.measured is None else self.measured.state_dict()}
 
     @classmethod
     def restore(cls, d: dict) -> "MappingPipeline":
-        p = cls(Trainer.from_checkpoint(d["trainer"]), atlanta=d["atlanta"], atlanta_state=d.get("structure"))
+        # A checkpoint from before 1.5 has no "measured": the pool is rebuilt from the kept keyframes
+        # (those the keyframe store dropped are gone); None: the mapper pooled none.
+        has = "measured" in d
+        p = cls(Trainer.from_checkpoint(d["trainer"]), atlanta=d["atlanta"], atlanta_state=d.get("structure"),
+                measured=not has or d["measured"] is not None)
+        if has and d["measured"] is not None:
+            p.measured = MeasuredSurface.from_state_dict(d["measured"])
         if d.get("bounds") is not None:
             p._bounds = np.asarray(d["bounds"])
         if d.get("observed") is not None:
@@ -213,4 +238,7 @@ class MappingPipeline:
         else:  # a checkpoint from before observed space: rebuild it from the kept keyframes
             for f in p.trainer.keyframes:
                 p.observed.add(f.depth, f.K, f.T_WC, p.trainer.cfg.max_depth)
+        if not has:
+            for f in p.trainer.keyframes:
+                p.measured.add(f.depth, f.K, f.T_WC)
         return p

@@ -6,7 +6,8 @@ building's map.
    mapper makes about as many in its 180 s; ``query_map.py``); cached in ``--out`` so a rerun skips it. By
    default the mapper the service runs by default (``--mapper submaps``: a network per
    submap, with measured points, so ``fused`` answers are protocol 1.4's); ``--mapper
-   single``: one network (1.3's fused answer, the bench's map before 2026-12-03).
+   single``: one network (the bench's map before 2026-12-03; with its measured points since
+   protocol 1.5, 1.3's fused answer before).
 2. The bake: wall time and memory (the baked arrays, and the process's peak resident
    memory growth during the bake, measured in a fresh process).
 3. Accuracy on the demo's 200,000 evaluation points (along seen rays, iSDF's protocol):

@@ -12,6 +12,9 @@ import numpy as np
 from .. import keys, protocol
 
 MAPPERS = ("submaps", "single")
+# Bumped when what a cached map holds changes: 2 = the one-network map's snapshot carries its
+# measured points (protocol 1.5); an older cache is trained again.
+CACHE_FORMAT = 2
 DEFAULT_STEPS = {"submaps": 1200, "single": 900}  # about what the demo's mapper makes in 180 s
 
 
@@ -35,7 +38,8 @@ def demo_map(out: Path, train_steps: int | None = None, seed: int = 0, duration:
     seq = SyntheticSequence(building="office", n_frames=n_frames, fps=fps, seed=seed)
     if path.exists():
         m = protocol.unpack(path.read_bytes())
-        if m.get("train_steps") == train_steps and m.get("n_frames") == n_frames and m.get("mapper") == mapper:
+        if (m.get("train_steps") == train_steps and m.get("n_frames") == n_frames and m.get("mapper") == mapper
+                and m.get("cache_format") == CACHE_FORMAT):
             return {"seq": seq, **m}
     t0 = time.perf_counter()
     sel = KeyframeSelector(KeyframeConfig())
@@ -62,7 +66,7 @@ def demo_map(out: Path, train_steps: int | None = None, seed: int = 0, duration:
         messages = [(k, protocol.unpack(v)) for k, v in pipe.map_messages(1, changed_only=False, epoch=1)]
     else:
         messages = [(keys.MAP_WEIGHTS, pipe.weight_snapshot(1).to_msg()), (keys.MAP_SURFELS, pipe.surfel_map(1).to_msg())]
-    m = {"mapper": mapper, "train_steps": train_steps, "steps": pipe.steps, "n_frames": n_frames, "keyframes": len(kfs),
+    m = {"cache_format": CACHE_FORMAT, "mapper": mapper, "train_steps": train_steps, "steps": pipe.steps, "n_frames": n_frames, "keyframes": len(kfs),
          "messages": messages, "describe": pipe.describe() if hasattr(pipe, "describe") else "one network"}
     out.mkdir(parents=True, exist_ok=True)
     path.write_bytes(protocol.pack(m))

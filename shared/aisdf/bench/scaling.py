@@ -104,8 +104,8 @@ class ScalingConfig(Model):
     progress: bool = Field(True, description="print a line per event")
     source: Literal["served", "fused", "implicit", "measured"] = Field(
         "served", description="the answer scored (and judged by the criteria): served = query/sdf's default for "
-        "the mapper (the submap mapper: fused with its published measured points, protocol 1.4; the one-network "
-        "mapper: fused), fused = the network and surfel map (1.3's answer), implicit = the network alone, "
+        "the mapper (fused with its published measured points: protocol 1.4 with submaps, 1.5 with one network; "
+        "fused for a mapper that sends none), fused = the network and surfel map (1.3's answer), implicit = the network alone, "
         "measured = fused with the measured surface; all are in the table")
 
 
@@ -201,7 +201,7 @@ def report(res: dict) -> str:
         (f"  ... of the fused answer (1.3, no measured points), end of the walk / +{cfg['tail_s']:g} s (%)",
          lambda r: f"{r['too_high_walk_end_by_source_pct']['fused']:.1f} / {r['too_high_end_by_source_pct']['fused']:.1f}"
          if "too_high_end_by_source_pct" in r else "-"),
-        (f"fused with the measured surface (served by the submap mapper since 1.4): error, end of the walk / "
+        (f"fused with the measured surface (served since 1.4 with submaps, 1.5 with one network): error, end of the walk / "
          f"+{cfg['tail_s']:g} s (cm)",
          lambda r: f"{r['error_walk_end_by_source_cm']['measured']:.2f} / {r['error_end_by_source_cm']['measured']:.2f}"
          if "measured" in r.get("error_end_by_source_cm", {}) else "-"),

@@ -74,7 +74,7 @@ class _Scorer:
     protocol 1.3's answer), that with the measured surface (``measured``,
     ``structure.measured``; ``measured`` gives the distance to the nearest measured point),
     and what ``query/sdf`` serves by default for this mapper (``served``: ``measured`` when
-    the mapper publishes measured points, protocol 1.4, else ``fused``); and, given
+    the mapper publishes measured points, protocols 1.4 and 1.5, else ``fused``); and, given
     ``measured``, where the error of ``source``'s answer is: the share of points whose
     nearest surface no keyframe measured (``UNMEASURED_M``), their part of the mean error
     and the mean error on the other points.
@@ -125,7 +125,7 @@ class _Scorer:
 
 
 def serves_measured(pipe) -> bool:
-    """Does this mapper publish measured points (protocol 1.4; the submap mapper by default)?"""
+    """Does this mapper publish measured points (by default: protocol 1.4 with submaps, 1.5 with one network)?"""
     return getattr(pipe, "measured", None) is not None and hasattr(pipe, "measured_points")
 
 

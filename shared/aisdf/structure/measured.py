@@ -49,6 +49,7 @@ class MeasuredSurface:
         self.sums = np.zeros((0, 3), np.float64)
         self.counts = np.zeros(0, np.int64)
         self._points: MeasuredPoints | None = None
+        self._msg: dict | None = None
 
     def __len__(self) -> int:
         return len(self.keys)
@@ -84,13 +85,20 @@ class MeasuredSurface:
         self.keys = np.insert(self.keys, i[fresh], new[fresh])
         self.sums = np.insert(self.sums, i[fresh], add_s[fresh], axis=0)
         self.counts = np.insert(self.counts, i[fresh], add_c[fresh])
-        self._points = None
+        self._points, self._msg = None, None
         return n
 
     def points(self) -> np.ndarray:
         """(M, 3) the mean point of each voxel with at least ``min_hits`` pixels."""
         ok = self.counts >= self.min_hits
         return self.sums[ok] / self.counts[ok, None]
+
+    def message(self) -> dict:
+        """The protocol's ``measured`` map (1.4): {"voxel": float, "points": (M, 3) float32},
+        built once per change (the one-network mapper sends it with every snapshot)."""
+        if self._msg is None:
+            self._msg = {"voxel": self.voxel, "points": self.points().astype(np.float32)}
+        return self._msg
 
     def distance(self, points: np.ndarray) -> np.ndarray:
         """(N,) distance from each point to the nearest measured point (inf when none)."""
@@ -100,6 +108,23 @@ class MeasuredSurface:
 
     def nbytes(self) -> int:
         return int(self.keys.nbytes + self.sums.nbytes + self.counts.nbytes)
+
+    def state_dict(self) -> dict:
+        """Plain types and arrays (for checkpoints): the settings and every voxel's sums."""
+        return {"voxel": self.voxel, "min_hits": self.min_hits, "max_depth": self.max_depth,
+                "keys": self.keys.copy(), "sums": self.sums.copy(), "counts": self.counts.copy()}
+
+    @classmethod
+    def from_state_dict(cls, d: dict) -> "MeasuredSurface":
+        """``state_dict``'s pool; ValueError when its arrays do not fit together."""
+        m = cls(float(d["voxel"]), int(d["min_hits"]), float(d["max_depth"]))
+        keys = np.asarray(d["keys"], np.int64).reshape(-1)
+        sums = np.asarray(d["sums"], np.float64).reshape(-1, 3)
+        counts = np.asarray(d["counts"], np.int64).reshape(-1)
+        if not (len(keys) == len(sums) == len(counts)) or np.any(np.diff(keys) <= 0) or np.any(counts < 1):
+            raise ValueError("measured surface state: keys must be sorted and unique, one sum and count each")
+        m.keys, m.sums, m.counts = keys, sums, counts
+        return m
 
 
 class MeasuredPoints:
