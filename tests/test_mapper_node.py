@@ -33,3 +33,48 @@ def test_measured_setting_reaches_both_mappers():
     assert pooled() and pooled(submaps=False)
     assert not pooled(measured=False) and not pooled(submaps=False, measured=False)
     assert not pooled(submap={"measured": False}) and pooled(submaps=False, submap={"measured": False})
+
+
+class _Puts:
+    """A stand-in for the Zenoh session: records what the node puts."""
+
+    def __init__(self):
+        self.puts = []
+
+    def put(self, key, data, encoding=None):
+        self.puts.append((key, bytes(data)))
+
+
+def test_one_network_service_publishes_and_checkpoints_its_measured_points(tmp_path):
+    """Protocol 1.5 through the mapper service's own path (no Zenoh): keyframes in as payloads,
+    ``map/weights`` out with the measured points of every keyframe; a restarted mapper resumes
+    the same points from its checkpoint and journal."""
+    from aisdf.structure.measured import MeasuredSurface
+    from aisdf.synthetic import SyntheticSequence
+
+    seq = SyntheticSequence(building="atlanta", n_frames=60, H=30, W=40, seed=1)
+    cfg = MapperConfig(preset="cpu", submaps=False, checkpoint_dir=tmp_path, namespace="t",
+                       training={"network": {"width": 16}, "n_rays": 10})
+    node = MapperNode(cfg, session=_Puts())
+    own = MeasuredSurface(max_depth=node.pipeline.cfg.max_depth)
+    for i in (0, 20, 40):
+        f = seq.frame(i)
+        node.on_keyframe(protocol.pack(protocol.Keyframe(f["frame_id"], f["stamp"], f["depth"], f["K"],
+                                                         f["T_WC"]).to_msg()))
+        own.add(f["depth"], f["K"], f["T_WC"])
+    node._add_pending()
+    node.pipeline.step()
+    node._publish()
+    weights = [d for k, d in node.session.puts if k == "t/map/weights"]
+    snap = protocol.WeightSnapshot.from_msg(protocol.unpack(weights[-1]))
+    assert snap.measured is not None and len(snap.measured["points"]) > 100
+    np.testing.assert_array_equal(snap.measured["points"], own.points().astype(np.float32))
+    node.save_checkpoint()
+    f = seq.frame(50)  # after the checkpoint: journaled, replayed on restart
+    node.on_keyframe(protocol.pack(protocol.Keyframe(f["frame_id"], f["stamp"], f["depth"], f["K"],
+                                                     f["T_WC"]).to_msg()))
+    node._add_pending()
+    own.add(f["depth"], f["K"], f["T_WC"])
+    again = MapperNode(cfg, session=_Puts())
+    assert again.pipeline.n_keyframes == 4
+    np.testing.assert_array_equal(again.pipeline.measured_points(), own.points().astype(np.float32))
