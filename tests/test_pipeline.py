@@ -136,13 +136,14 @@ def test_mesh_of_a_known_field():
 @pytest.mark.parametrize("mapper", ["single", "submaps"])
 def test_a_keyframe_holds_its_depth_once(seq, mapper):
     """The stored frame holds the cleaned depth the training samples (one array, not a raw
-    copy beside it), the caller's frame is left as it was, the memory count does not count
-    the depth twice, and a checkpoint brings back the same keyframes."""
+    copy beside it) and its surfel mask as packed bits, the caller's frame is left as it was,
+    the memory count does not count the depth twice, and a checkpoint brings back the same
+    keyframes."""
     from aisdf.submaps.pipeline import SubmapPipeline, restore_pipeline
 
     p = small() if mapper == "single" else SubmapPipeline.from_settings(
         "cpu", {"network": {"width": 32}, "n_rays": 20})
-    given = []
+    given, masks_given = [], []
     for i in range(0, 40, 8):
         f = frame(seq, i)
         f.depth = f.depth.astype(np.float32)
@@ -151,16 +152,22 @@ def test_a_keyframe_holds_its_depth_once(seq, mapper):
         p.add_keyframe(f)
         assert np.array_equal(f.depth, raw, equal_nan=True)  # the caller's frame: untouched
         given.append(raw)
+        masks_given.append(f.surfel_mask)  # (the Atlanta module fills the caller's frame)
     stored = p.trainer.store.keyframes if mapper == "single" else list(p.frames.values())
     assert len(stored) == len(given)
     H, W = given[0].shape
-    for kf, raw in zip(stored, given):
+    assert sum(m is not None and m.any() for m in masks_given) >= 3  # surfels were found
+    for kf, raw, mask in zip(stored, given, masks_given):
         assert kf.frame.depth is kf.depth and kf.depth.dtype == np.float32
         ok = np.isfinite(raw) & (raw > 0)
         assert np.array_equal(kf.depth, np.where(ok, raw, 0))
-        # depth 4 B per pixel, the surfel mask 1, the surfels a few hundred bytes (normals are
-        # computed where sampled)
-        assert kf.nbytes() <= H * W * 5 + 4096
+        # the surfel mask: one bit a pixel in the keyframe, none in the stored frame
+        assert kf.frame.surfel_mask is None and (kf.surfel_mask is None) == (mask is None)
+        if mask is not None:
+            assert np.array_equal(kf.surfel_mask, mask) and kf.surfel_bits.nbytes == -(-H * W // 8)
+        # depth 4 B per pixel, the surfel mask 1 bit, the surfels a few hundred bytes (normals
+        # are computed where sampled)
+        assert kf.nbytes() <= H * W * 4 + H * W // 8 + 4096
     masks = 0 if mapper == "single" else sum(  # submaps: a pixel mask per keyframe and submap it joined
         v.pixel_bits.nbytes for sm in p.submaps.values() for v in sm.trainer.store.keyframes)
     assert p.memory()["keyframes"] == sum(k.nbytes() for k in stored) + masks
@@ -168,6 +175,7 @@ def test_a_keyframe_holds_its_depth_once(seq, mapper):
         for c, sm in p.submaps.items():
             for v in sm.trainer.store.keyframes:
                 assert v.pixel_bits.nbytes == -(-H * W // 8) and v.depth is p.frames[v.frame.key].depth
+                assert v.surfel_bits is p.frames[v.frame.key].surfel_bits  # shared, not copied
                 assert np.array_equal(v.pixel_mask, p._pixel_mask(v, c)) and v.pixel_mask.any()
     p.step()
     back = restore_pipeline(p.checkpoint())
@@ -175,6 +183,7 @@ def test_a_keyframe_holds_its_depth_once(seq, mapper):
     assert [k.frame.key for k in again] == [k.frame.key for k in stored]
     for a, b in zip(again, stored):
         assert np.array_equal(a.depth, b.depth) and a.frame.depth is a.depth
+        assert np.array_equal(a.surfel_bits, b.surfel_bits) if b.surfel_bits is not None else a.surfel_bits is None
 
 
 def test_one_network_sends_its_measured_points_1_5(seq):

@@ -76,7 +76,8 @@ def clean_depth(depth: np.ndarray, max_depth: float) -> np.ndarray:
 @dataclass
 class Keyframe:
     """A stored frame with what sampling needs: its cleaned depth (normals are computed at
-    the sampled pixels, ``geometry.normals_at``)."""
+    the sampled pixels, ``geometry.normals_at``) and its surfel mask as packed bits (the
+    stored frame holds neither a copy of the depth nor a byte-per-pixel mask)."""
 
     frame: Frame
     depth: np.ndarray
@@ -86,35 +87,54 @@ class Keyframe:
     # ``region(points, grow) -> bool`` (the submap's box grown by ``grow``).
     pixel_bits: np.ndarray | None = None
     region: object = None
+    surfel_bits: np.ndarray | None = None  # ``Frame.surfel_mask``, one bit a pixel (``surfel_mask``)
 
     def view(self, pixel_mask: np.ndarray | None, region) -> "Keyframe":
         """The same keyframe (arrays shared, not copied) for a submap's store."""
-        bits = None if pixel_mask is None else np.packbits(np.asarray(pixel_mask, bool).reshape(-1))
-        return Keyframe(self.frame, self.depth, None, bits, region)
+        return Keyframe(self.frame, self.depth, None, _pack(pixel_mask), region, self.surfel_bits)
+
+    def _unpack(self, bits: np.ndarray | None) -> np.ndarray | None:
+        if bits is None:
+            return None
+        H, W = self.depth.shape
+        return np.unpackbits(bits, count=H * W).reshape(H, W).view(bool)
 
     @property
     def pixel_mask(self) -> np.ndarray | None:
         """(H, W) bool: the pixels a submap's rays may come from (None: all of them)."""
-        if self.pixel_bits is None:
-            return None
-        H, W = self.depth.shape
-        return np.unpackbits(self.pixel_bits, count=H * W).reshape(H, W).view(bool)
+        return self._unpack(self.pixel_bits)
+
+    @property
+    def surfel_mask(self) -> np.ndarray | None:
+        """(H, W) bool: the frame's surfel pixels (``Frame.surfel_mask``; None: no mask)."""
+        return self._unpack(self.surfel_bits)
+
+    def frame_dict(self) -> dict:
+        """The frame as ``Frame.to_dict`` gives it (surfel mask unpacked), for checkpoints."""
+        d = self.frame.to_dict()
+        d["surfel_mask"] = self.surfel_mask
+        return d
 
     @classmethod
     def make(cls, frame: Frame, max_depth: float) -> "Keyframe":
         """The keyframe of ``frame``: its depth cleaned (``clean_depth``). The
         stored frame is a copy of ``frame`` holding the cleaned depth (one array, not two:
         every reader of a keyframe's depth, checkpoints included, takes 0 as invalid and
-        applies the same ``max_depth``); ``frame`` itself is left as it was."""
+        applies the same ``max_depth``); ``frame`` itself is left as it was. The surfel mask
+        moves into ``surfel_bits`` (the stored frame's ``surfel_mask`` is None)."""
         depth = clean_depth(frame.depth, max_depth)
         if frame.surfel_mask is not None and frame.surfel_mask.shape != depth.shape:
             raise ValueError(f"surfel_mask shape {frame.surfel_mask.shape} != depth shape {depth.shape}")
-        return cls(replace(frame, depth=depth), depth)
+        return cls(replace(frame, depth=depth, surfel_mask=None), depth, surfel_bits=_pack(frame.surfel_mask))
 
     def nbytes(self) -> int:
-        """Bytes held: the frame's arrays, and the depth once when shared."""
-        n = self.frame.nbytes()
+        """Bytes held: the frame's arrays, the depth once when shared, the packed surfel mask."""
+        n = self.frame.nbytes() + (0 if self.surfel_bits is None else self.surfel_bits.nbytes)
         return int(n if self.depth is self.frame.depth else n + self.depth.nbytes)
+
+
+def _pack(mask: np.ndarray | None) -> np.ndarray | None:
+    return None if mask is None else np.packbits(np.asarray(mask, bool).reshape(-1))
 
 
 class KeyframeStore:

@@ -7,7 +7,8 @@ Per frame: ``n_rays`` random valid pixels (with replacement), and per ray, in ca
 uniform draw in each of as many equal bins). With surfels in use (config
 ``uses_surfels``) a frame with surfels also gets ``samples_per_ray`` points uniform on
 each surfel rectangle; with ``surfel_mask`` its rays come only from non-surfel pixels
-(those not set in ``Frame.surfel_mask``; all valid pixels when the frame has no mask),
+(those not set in the frame's surfel mask, ``Keyframe.surfel_mask``; all valid pixels when
+the frame has no mask),
 and with ``surfels_replace_rays`` (off by default, see config.py) it gets one ray fewer per surfel.
 """
 
@@ -94,8 +95,9 @@ def sample_frame(kf: Keyframe, slot: int, cfg: TrainingConfig, rng: np.random.Ge
         valid = valid & mask
     n_rays = cfg.n_rays
     if cfg.surfel_mask and surfels is not None:
-        if frame.surfel_mask is not None:
-            valid = valid & ~frame.surfel_mask
+        smask = kf.surfel_mask
+        if smask is not None:
+            valid = valid & ~smask
         if cfg.surfels_replace_rays:
             n_rays = max(n_rays - len(surfels), 0)
     H, W = kf.depth.shape

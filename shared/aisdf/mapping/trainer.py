@@ -188,7 +188,7 @@ class Trainer:
             "format": CHECKPOINT_FORMAT, "version": CHECKPOINT_VERSION,
             "config": self.cfg.model_dump(mode="json"), "model": self.model_spec(), "state": self.state_numpy(),
             "optimizer": _optimizer_to_numpy(self.optimizer.state_dict()),
-            "keyframes": [k.frame.to_dict() for k in self.store.keyframes],
+            "keyframes": [k.frame_dict() for k in self.store.keyframes],
             "losses": [k.loss for k in self.store.keyframes],
             "steps": self._steps, "dropped": self.store.dropped,
             "rng": json.dumps(self.rng.bit_generator.state), "lr_state": self.lr_state(),

@@ -40,7 +40,7 @@ class SubmapCheckpoints:
             "submap_config": self.sub_cfg.model_dump(mode="json"), "atlanta": self.atlanta_on,
             "structure": None if self.structure is None else self.structure.state_dict(),
             "grid": None if self.grid is None else self.grid.to_msg(),
-            "frames": [k.frame.to_dict() for k in self.frames.values()],
+            "frames": [k.frame_dict() for k in self.frames.values()],
             "waiting": [list(k.frame.key) for k in self._waiting],
             "recent": [[[list(c), n] for c, n in seen.items()] for seen in self._recent],
             "credit": [[list(c), v] for c, v in self._credit.items()], "since_keyframe": self._since_keyframe,
