@@ -124,10 +124,11 @@ def run(out: str | Path = "runs/bench-query", sizes=(1_000, 10_000, 100_000), re
     from ..demo import eval_points_from
 
     eng = engine_of(m, bake_threads)
+    st = eng.state
+    res["map"].update(surfels=len(st.surfels) if st.surfels is not None else 0,
+                      measured_points=len(st.measured) if st.measured is not None else 0)
     if mapper == "submaps":
-        st = eng.state
-        res["map"].update(submaps=len(st.submaps.submaps), surfels=len(st.surfels) if st.surfels is not None else 0,
-                          measured_points=len(st.measured) if st.measured is not None else 0)
+        res["map"].update(submaps=len(st.submaps.submaps))
     eng.bake_now()
     rng = np.random.default_rng(0)
     pts = eval_points_from(seq, len(seq), n_eval, rng)
@@ -291,9 +292,15 @@ def concurrent_planners(client: SdfClient, pts: np.ndarray, planners: int, secon
 def report(res: dict) -> str:
     b, a, lg, pl = res["bake"], res["accuracy"], res["lag"], res["planners"]
     mp = res["map"]
-    what = (f"{mp.get('submaps')} submaps ({mp.get('describe')}), {mp.get('surfels')} surfels, "
-            f"{mp.get('measured_points'):,} measured points: `fused` is protocol 1.4's answer"
-            if mp.get("mapper", "single") == "submaps" else "one network: `fused` is protocol 1.3's answer")
+    n_m = mp.get("measured_points") or 0
+    if mp.get("mapper", "single") == "submaps":
+        what = (f"{mp.get('submaps')} submaps ({mp.get('describe')}), {mp.get('surfels')} surfels, "
+                f"{n_m:,} measured points: `fused` is protocol 1.4's answer" if n_m else
+                f"{mp.get('submaps')} submaps ({mp.get('describe')}), {mp.get('surfels')} surfels, no measured "
+                "points: `fused` is protocol 1.3's answer")
+    else:
+        what = (f"one network, {mp.get('surfels')} surfels, {n_m:,} measured points: `fused` is protocol 1.5's "
+                "answer (1.4's rule)" if n_m else "one network, no measured points: `fused` is protocol 1.3's answer")
     lines = [f"Map: the demo building (office), {mp['keyframes']} keyframes, "
              f"{mp['train_steps']} training steps (cpu preset), {what}; torch threads {res['threads']} per "
              f"evaluation, {res['bake_threads']} bake threads. The lag row: the whole map republished each second "
