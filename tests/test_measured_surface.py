@@ -46,6 +46,35 @@ def test_moved_camera_and_distance_to_the_nearest_point():
     assert np.isinf(MeasuredSurface().distance(q[None])[0])  # nothing measured: no bound
 
 
+def test_state_round_trip_message_and_bad_state():
+    """A checkpoint's pool (``state_dict``) comes back equal, adding more continues as if never
+    saved; ``message`` is the protocol's map, rebuilt after a change; a state whose arrays do
+    not fit together is refused."""
+    m = MeasuredSurface(voxel=0.1, min_hits=2, max_depth=5.0)
+    m.add(_wall(), K, np.eye(4))
+    msg = m.message()
+    assert msg["voxel"] == 0.1 and msg["points"].dtype == np.float32 and m.message() is msg  # cached
+    np.testing.assert_array_equal(msg["points"], m.points().astype(np.float32))
+    back = MeasuredSurface.from_state_dict(m.state_dict())
+    assert (back.voxel, back.min_hits, back.max_depth) == (0.1, 2, 5.0)
+    T = np.eye(4)
+    T[:3, 3] = [0.03, 0.0, 0.1]
+    for x in (m, back):
+        x.add(_wall(), K, T)
+    assert m.message() is not msg  # a change builds it again
+    for a in ("keys", "sums", "counts"):
+        np.testing.assert_array_equal(getattr(back, a), getattr(m, a))
+    np.testing.assert_array_equal(back.message()["points"], m.message()["points"])
+    bad = m.state_dict()
+    bad["keys"] = bad["keys"][::-1]  # not sorted
+    with pytest.raises(ValueError, match="sorted"):
+        MeasuredSurface.from_state_dict(bad)
+    bad = m.state_dict()
+    bad["counts"] = bad["counts"][:-1]
+    with pytest.raises(ValueError):
+        MeasuredSurface.from_state_dict(bad)
+
+
 def test_bad_input_is_refused_and_changes_nothing():
     m = MeasuredSurface()
     m.add(_wall(), K, np.eye(4))
