@@ -261,3 +261,67 @@ def test_one_network_sends_its_measured_points_1_5(seq):
     off.add_keyframe(frame(seq, 0))
     assert off.weight_snapshot(1).measured is None and off.memory()["measured"] == 0
     assert MappingPipeline.restore(off.checkpoint()).measured is None
+
+
+@pytest.mark.parametrize("mapper", ["single", "submaps"])
+def test_a_u2_keyframe_is_held_raw_with_the_same_training(seq, mapper):
+    """A keyframe sent as ``<u2`` (as the frontend sends it) is held as its raw values, 2 bytes
+    a pixel instead of 4, 0 where the cleaned depth is invalid; decoded it is the float depth
+    to the bit, so a map fed the same keyframes as ``<f4`` metres trains to the same bits.
+    Checkpoints keep the raw values; a frame whose raw depth does not decode to its depth is
+    held as floats."""
+    from aisdf.mapping.frames import Keyframe, clean_depth, decode_depth
+    from aisdf.geometry import normals_at
+    from aisdf.submaps.pipeline import SubmapPipeline, restore_pipeline
+
+    def make():
+        torch.manual_seed(0)
+        return small() if mapper == "single" else SubmapPipeline.from_settings(
+            "cpu", {"network": {"width": 32}, "n_rays": 20})
+
+    p_u2, p_f = make(), make()
+    sent = []
+    for i in range(0, 40, 8):
+        f = seq.frame(i)
+        raw = np.clip(np.round(np.nan_to_num(f["depth"]) * 1000.0), 0, 65535).astype(np.uint16)
+        raw[:2, :6] = 0  # no return
+        raw[2, :6] = 65000  # 65 m: beyond max_depth, invalid once stored
+        kf = protocol.Keyframe(f["frame_id"], f["stamp"], raw, f["K"], f["T_WC"], depth_scale=1000.0)
+        sent.append(kf)
+        p_u2.add_keyframe(kf)
+        p_f.add_keyframe(protocol.Keyframe(f["frame_id"], f["stamp"], kf.depth_m(), f["K"], f["T_WC"]))
+    for _ in range(6):
+        p_u2.step()
+        p_f.step()
+    pts = seq.poses[0][:3, 3] + np.random.default_rng(3).uniform(-1.5, 1.5, (500, 3))
+    np.testing.assert_array_equal(p_u2.sdf(pts), p_f.sdf(pts))  # the same training, bit for bit
+
+    def stored(p):
+        return p.trainer.store.keyframes if mapper == "single" else list(p.frames.values())
+
+    H, W = sent[0].depth.shape
+    rng = np.random.default_rng(0)
+    for kf, kf_f, k in zip(stored(p_u2), stored(p_f), sent):
+        assert kf.scale == 1000.0 and kf.raw.dtype == np.uint16 and kf_f.scale is None
+        assert kf.frame.depth is None and kf.frame.depth_raw is kf.raw
+        want = clean_depth(k.depth_m(), p_u2.cfg.max_depth)
+        np.testing.assert_array_equal(kf.depth, want)
+        np.testing.assert_array_equal(kf.depth, kf_f.depth)
+        assert not kf.raw[2, :6].any() and np.array_equal(kf.valid(), want > 0)
+        pix = rng.integers(0, H * W, 300)
+        np.testing.assert_array_equal(kf.depth_at(pix), want.reshape(-1)[pix])
+        v, u = pix // W, pix % W
+        np.testing.assert_array_equal(normals_at(kf.raw, k.K, v, u, scale=kf.scale), normals_at(want, k.K, v, u))
+        assert kf.nbytes() <= H * W * 2 + H * W // 8 + 4096 < kf_f.nbytes()
+    ck = p_u2.checkpoint()
+    back = restore_pipeline(ck)
+    for a, b in zip(stored(back), stored(p_u2)):
+        assert a.scale == 1000.0 and np.array_equal(a.raw, b.raw) and a.frame.depth is None
+    p_u2.step()
+    back.step()
+    np.testing.assert_array_equal(back.sdf(pts), p_u2.sdf(pts))  # resumed where it stopped
+    f = frame(seq, 0)  # raw depth that does not decode to the frame's depth: held as floats
+    f.depth_raw, f.depth_scale = np.zeros(f.depth.shape, np.uint16), 1000.0
+    kf = Keyframe.make(f, 12.0)
+    assert kf.scale is None and kf.raw.dtype == np.float32 and np.array_equal(
+        kf.depth, clean_depth(f.depth, 12.0)) and not np.array_equal(kf.depth, decode_depth(f.depth_raw, 1000.0))

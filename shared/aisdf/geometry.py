@@ -96,11 +96,14 @@ def normals_from_depth(depth: np.ndarray, K: np.ndarray, max_jump: float = 0.1) 
     return n
 
 
-def normals_at(depth: np.ndarray, K: np.ndarray, v: np.ndarray, u: np.ndarray, max_jump: float = 0.1) -> np.ndarray:
+def normals_at(depth: np.ndarray, K: np.ndarray, v: np.ndarray, u: np.ndarray, max_jump: float = 0.1,
+               scale: float | None = None) -> np.ndarray:
     """``normals_from_depth(depth, K, max_jump)[v, u]`` for a few pixels (N,), computed from
     their four neighbours only: (N, 3) camera-frame normals, NaN where that gives NaN
     (the image's border, invalid neighbours, occlusion boundaries). What training needs of a
-    keyframe's normals, at the pixels it samples, without holding an image of them."""
+    keyframe's normals, at the pixels it samples, without holding an image of them.
+    ``scale``: ``depth`` is raw ``<u2`` (metres = depth / scale, decoded as
+    ``protocol.Keyframe.depth_m`` does, stencil pixels only)."""
     d = np.asarray(depth)  # only the stencils' pixels are converted to float64
     H, W = d.shape
     v, u = np.asarray(v, np.int64).reshape(-1), np.asarray(u, np.int64).reshape(-1)
@@ -113,7 +116,10 @@ def normals_at(depth: np.ndarray, K: np.ndarray, v: np.ndarray, u: np.ndarray, m
     # the pixel and its right, left, lower and upper neighbours, back-projected as backproject does
     vv = np.stack([vi, vi, vi, vi + 1, vi - 1])
     uu = np.stack([ui, ui + 1, ui - 1, ui, ui])
-    z = d[vv, uu].astype(np.float64)  # (5, M)
+    z = d[vv, uu]
+    if scale is not None:
+        z = z.astype(np.float32) / np.float32(scale)
+    z = z.astype(np.float64)  # (5, M)
     x, y = (uu - cx) / fx * z, (vv - cy) / fy * z
     none = ~(z > 0)
     x[none], y[none] = np.nan, np.nan

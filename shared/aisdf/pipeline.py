@@ -28,7 +28,11 @@ MIN_VALID_PIXELS = 64
 
 
 def frame_from_keyframe(kf: protocol.Keyframe) -> Frame:
-    return Frame(kf.frame_id, kf.stamp, kf.depth_m(), kf.K, kf.T_WC, sensor=kf.sensor)
+    """The frame of a received keyframe: depth in metres, and for ``<u2`` depth the raw
+    values too (a stored keyframe holds those: half the bytes, the same metres)."""
+    raw = kf.depth if kf.depth.dtype == np.uint16 and kf.depth_scale is not None else None
+    return Frame(kf.frame_id, kf.stamp, kf.depth_m(), kf.K, kf.T_WC, sensor=kf.sensor, depth_raw=raw,
+                 depth_scale=None if raw is None else float(kf.depth_scale))
 
 
 def grow_bounds(bounds: np.ndarray | None, frame: Frame, max_depth: float = np.inf) -> np.ndarray:
@@ -237,8 +241,8 @@ class MappingPipeline:
             p.observed.load_state_dict(d["observed"])
         else:  # a checkpoint from before observed space: rebuild it from the kept keyframes
             for f in p.trainer.keyframes:
-                p.observed.add(f.depth, f.K, f.T_WC, p.trainer.cfg.max_depth)
+                p.observed.add(f.metres(), f.K, f.T_WC, p.trainer.cfg.max_depth)
         if not has:
             for f in p.trainer.keyframes:
-                p.measured.add(f.depth, f.K, f.T_WC)
+                p.measured.add(f.metres(), f.K, f.T_WC)
         return p

@@ -19,10 +19,20 @@ from ..structure.surfel_types import FIELDS as SURFEL_FIELDS
 from ..structure.surfel_types import Surfels
 
 
+def decode_depth(raw: np.ndarray, scale: float) -> np.ndarray:
+    """float32 metres of raw ``<u2`` depth: the arithmetic of ``protocol.Keyframe.depth_m``,
+    so a value decoded here is the same float whether the whole image or a few pixels are."""
+    return np.asarray(raw).astype(np.float32) / np.float32(scale)
+
+
 @dataclass
 class Frame:
     """A posed depth keyframe. depth (H, W) float32 metres, 0 = invalid; K (3, 3); T_WC (4, 4)
-    camera-to-world; surfels / surfel_mask (H, W) bool are filled by the Atlanta module."""
+    camera-to-world; surfels / surfel_mask (H, W) bool are filled by the Atlanta module.
+
+    ``depth_raw`` / ``depth_scale``: the depth as the sensor sent it (``<u2``, metres =
+    ``depth_raw / depth_scale``), when it came so (``frame_from_keyframe``). A stored
+    keyframe's frame holds only those (``depth`` None) and ``metres()`` decodes them."""
 
     frame_id: int
     stamp: float
@@ -32,14 +42,20 @@ class Frame:
     surfels: Surfels | None = None
     surfel_mask: np.ndarray | None = None
     sensor: str = "depth"  # with frame_id, the keyframe's identity in a map several robots build
+    depth_raw: np.ndarray | None = None
+    depth_scale: float | None = None
 
     @property
     def key(self) -> tuple[str, int]:
         return (self.sensor, int(self.frame_id))
 
+    def metres(self) -> np.ndarray:
+        """(H, W) float32 depth in metres: ``depth``, or ``depth_raw`` decoded when only it is held."""
+        return self.depth if self.depth is not None else decode_depth(self.depth_raw, self.depth_scale)
+
     def nbytes(self) -> int:
-        """Bytes held by the frame's arrays (depth, mask, surfels)."""
-        n = self.depth.nbytes + (0 if self.surfel_mask is None else self.surfel_mask.nbytes)
+        """Bytes held by the frame's arrays (depth, raw depth, mask, surfels)."""
+        n = sum(a.nbytes for a in (self.depth, self.depth_raw, self.surfel_mask) if a is not None)
         if self.surfels is not None:
             n += sum(np.asarray(getattr(self.surfels, f)).nbytes for f in SURFEL_FIELDS)
         return int(n)
@@ -48,7 +64,10 @@ class Frame:
         """Plain types and arrays (for checkpoints)."""
         return {
             "frame_id": int(self.frame_id), "stamp": float(self.stamp),
-            "depth": np.asarray(self.depth, np.float32), "K": np.asarray(self.K, np.float64),
+            "depth": None if self.depth is None else np.asarray(self.depth, np.float32),
+            "depth_raw": None if self.depth_raw is None else np.asarray(self.depth_raw, np.uint16),
+            "depth_scale": None if self.depth_scale is None else float(self.depth_scale),
+            "K": np.asarray(self.K, np.float64),
             "T_WC": np.asarray(self.T_WC, np.float64),
             "surfels": None if self.surfels is None else {f: getattr(self.surfels, f) for f in SURFEL_FIELDS},
             "surfel_mask": None if self.surfel_mask is None else np.asarray(self.surfel_mask, bool),
@@ -57,12 +76,18 @@ class Frame:
 
     @classmethod
     def from_dict(cls, d: dict) -> "Frame":
+        """``to_dict``'s frame; one held as raw depth comes back with its metres decoded too
+        (as it arrived), so ``Keyframe.make`` stores it raw again."""
         s = d.get("surfels")
         m = d.get("surfel_mask")
+        raw, scale = d.get("depth_raw"), d.get("depth_scale")
+        if raw is not None:
+            raw, scale = np.asarray(raw, np.uint16), float(scale)
+        depth = np.asarray(d["depth"], np.float32) if d.get("depth") is not None else decode_depth(raw, scale)
         return cls(
-            int(d["frame_id"]), float(d["stamp"]), np.asarray(d["depth"], np.float32), np.asarray(d["K"], np.float64),
+            int(d["frame_id"]), float(d["stamp"]), depth, np.asarray(d["K"], np.float64),
             np.asarray(d["T_WC"], np.float64), None if s is None else Surfels(**s),
-            None if m is None else np.asarray(m, bool), str(d.get("sensor", "depth")),
+            None if m is None else np.asarray(m, bool), str(d.get("sensor", "depth")), raw, scale,
         )
 
 
@@ -77,10 +102,15 @@ def clean_depth(depth: np.ndarray, max_depth: float) -> np.ndarray:
 class Keyframe:
     """A stored frame with what sampling needs: its cleaned depth (normals are computed at
     the sampled pixels, ``geometry.normals_at``) and its surfel mask as packed bits (the
-    stored frame holds neither a copy of the depth nor a byte-per-pixel mask)."""
+    stored frame holds neither a copy of the depth nor a byte-per-pixel mask).
+
+    The depth is held as it came: float32 metres (``raw``, ``scale`` None), or for a
+    keyframe sent as ``<u2`` its raw values (``scale``: metres = raw / scale; half the bytes,
+    the same metres to the bit). ``depth`` decodes the whole image; sampling reads ``raw``
+    with ``valid()`` and ``depth_at()``, decoding only the pixels it takes."""
 
     frame: Frame
-    depth: np.ndarray
+    raw: np.ndarray
     loss: float | None = None
     # Submaps: rays only from the pixels of ``pixel_mask`` (those whose ray meets the
     # submap; held as packed bits, one per pixel), and samples only where
@@ -88,15 +118,34 @@ class Keyframe:
     pixel_bits: np.ndarray | None = None
     region: object = None
     surfel_bits: np.ndarray | None = None  # ``Frame.surfel_mask``, one bit a pixel (``surfel_mask``)
+    scale: float | None = None  # raw depth's scale; None: ``raw`` is metres
 
     def view(self, pixel_mask: np.ndarray | None, region) -> "Keyframe":
         """The same keyframe (arrays shared, not copied) for a submap's store."""
-        return Keyframe(self.frame, self.depth, None, _pack(pixel_mask), region, self.surfel_bits)
+        return Keyframe(self.frame, self.raw, None, _pack(pixel_mask), region, self.surfel_bits, self.scale)
+
+    @property
+    def depth(self) -> np.ndarray:
+        """(H, W) float32 metres, 0 where invalid (decoded when held raw)."""
+        return self.raw if self.scale is None else decode_depth(self.raw, self.scale)
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        return self.raw.shape
+
+    def valid(self) -> np.ndarray:
+        """(H, W) bool: the pixels with a depth."""
+        return self.raw > 0
+
+    def depth_at(self, flat: np.ndarray) -> np.ndarray:
+        """float32 metres at flat pixel indices (those of ``depth``, decoded alone)."""
+        d = self.raw.reshape(-1)[flat]
+        return d if self.scale is None else decode_depth(d, self.scale)
 
     def _unpack(self, bits: np.ndarray | None) -> np.ndarray | None:
         if bits is None:
             return None
-        H, W = self.depth.shape
+        H, W = self.raw.shape
         return np.unpackbits(bits, count=H * W).reshape(H, W).view(bool)
 
     @property
@@ -120,17 +169,28 @@ class Keyframe:
         """The keyframe of ``frame``: its depth cleaned (``clean_depth``). The
         stored frame is a copy of ``frame`` holding the cleaned depth (one array, not two:
         every reader of a keyframe's depth, checkpoints included, takes 0 as invalid and
-        applies the same ``max_depth``); ``frame`` itself is left as it was. The surfel mask
-        moves into ``surfel_bits`` (the stored frame's ``surfel_mask`` is None)."""
+        applies the same ``max_depth``); ``frame`` itself is left as it was. A frame that
+        came as ``<u2`` (``depth_raw``, which decodes to its ``depth``) is held raw, with 0
+        where the cleaned depth is invalid. The surfel mask moves into ``surfel_bits`` (the
+        stored frame's ``surfel_mask`` is None)."""
         depth = clean_depth(frame.depth, max_depth)
         if frame.surfel_mask is not None and frame.surfel_mask.shape != depth.shape:
             raise ValueError(f"surfel_mask shape {frame.surfel_mask.shape} != depth shape {depth.shape}")
-        return cls(replace(frame, depth=depth, surfel_mask=None), depth, surfel_bits=_pack(frame.surfel_mask))
+        bits = _pack(frame.surfel_mask)
+        raw, scale = frame.depth_raw, frame.depth_scale
+        if (raw is not None and scale is not None and raw.dtype == np.uint16 and raw.shape == depth.shape
+                and np.array_equal(decode_depth(raw, scale), np.asarray(frame.depth, np.float32))):
+            raw = np.where(depth > 0, raw, np.uint16(0))
+            stored = replace(frame, depth=None, depth_raw=raw, depth_scale=float(scale), surfel_mask=None)
+            return cls(stored, raw, surfel_bits=bits, scale=float(scale))
+        return cls(replace(frame, depth=depth, depth_raw=None, depth_scale=None, surfel_mask=None), depth,
+                   surfel_bits=bits)
 
     def nbytes(self) -> int:
         """Bytes held: the frame's arrays, the depth once when shared, the packed surfel mask."""
         n = self.frame.nbytes() + (0 if self.surfel_bits is None else self.surfel_bits.nbytes)
-        return int(n if self.depth is self.frame.depth else n + self.depth.nbytes)
+        shared = self.raw is self.frame.depth or self.raw is self.frame.depth_raw
+        return int(n if shared else n + self.raw.nbytes)
 
 
 def _pack(mask: np.ndarray | None) -> np.ndarray | None:

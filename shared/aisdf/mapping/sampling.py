@@ -89,7 +89,7 @@ def sample_frame(kf: Keyframe, slot: int, cfg: TrainingConfig, rng: np.random.Ge
     """Ray samples (and surfel points) of one keyframe."""
     frame = kf.frame
     surfels = frame.surfels if (cfg.uses_surfels and frame.surfels is not None) else None
-    valid = kf.depth > 0
+    valid = kf.valid()
     mask = kf.pixel_mask  # unpacked once
     if mask is not None:
         valid = valid & mask
@@ -100,12 +100,12 @@ def sample_frame(kf: Keyframe, slot: int, cfg: TrainingConfig, rng: np.random.Ge
             valid = valid & ~smask
         if cfg.surfels_replace_rays:
             n_rays = max(n_rays - len(surfels), 0)
-    H, W = kf.depth.shape
+    H, W = kf.shape
     pix = sample_pixels(valid, n_rays, rng)
     u, v = pix % W, pix // W
     K = frame.K
     dirs_C = np.stack([(u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1], np.ones(len(pix))], axis=-1)
-    D = kf.depth.reshape(-1)[pix].astype(np.float64)
+    D = kf.depth_at(pix).astype(np.float64)
     z = ray_depths(D, rng, cfg.n_gaussian, cfg.gaussian_std, cfg.n_stratified, cfg.min_depth, cfg.depth_margin)
     R, S = z.shape
     T_WC = np.asarray(frame.T_WC, np.float64)
@@ -115,7 +115,7 @@ def sample_frame(kf: Keyframe, slot: int, cfg: TrainingConfig, rng: np.random.Ge
     target = np.full((R, S, 3), np.nan, np.float32)
     # the sampled pixels' normals (geometry.normals_at, computed here rather than held per
     # keyframe), in half precision as they were once stored
-    target[:, 0] = geometry.rotate(T_WC, geometry.normals_at(kf.depth, K, v, u)).astype(np.float16)
+    target[:, 0] = geometry.rotate(T_WC, geometry.normals_at(kf.raw, K, v, u, scale=kf.scale)).astype(np.float16)
     parts = [Batch(
         pts_W.reshape(-1, 3).astype(np.float32), z.reshape(-1).astype(np.float32),
         np.repeat(D, S).astype(np.float32), kind.reshape(-1), target.reshape(-1, 3),

@@ -251,7 +251,7 @@ class SubmapPipeline(SubmapPublishing, SubmapCheckpoints):
         """Pixels whose sampled segment [min_depth, D + margin] meets the submap's box grown
         by a truncation distance (slab test in grid coordinates)."""
         cfg, grid = self.cfg, self.grid
-        H, W = kf.depth.shape
+        H, W = kf.shape
         v, u = np.mgrid[0:H, 0:W]
         K, T = kf.frame.K, np.asarray(kf.frame.T_WC, np.float64)
         dirs_C = np.stack([(u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1], np.ones((H, W))], -1).reshape(-1, 3)
