@@ -314,6 +314,12 @@ def test_a_u2_keyframe_is_held_raw_with_the_same_training(seq, mapper):
         np.testing.assert_array_equal(normals_at(kf.raw, k.K, v, u, scale=kf.scale), normals_at(want, k.K, v, u))
         assert kf.nbytes() <= H * W * 2 + H * W // 8 + 4096 < kf_f.nbytes()
     ck = p_u2.checkpoint()
+    # Version 2 (raw depth): a build that knows only version 1 refuses it with a clear error;
+    # a version-1 checkpoint (float depth, the same keyframes) loads into the same map.
+    assert (ck["trainer"] if mapper == "single" else ck)["version"] == 2
+    v1 = p_f.checkpoint()
+    (v1["trainer"] if mapper == "single" else v1)["version"] = 1
+    np.testing.assert_array_equal(restore_pipeline(v1).sdf(pts), p_f.sdf(pts))
     back = restore_pipeline(ck)
     for a, b in zip(stored(back), stored(p_u2)):
         assert a.scale == 1000.0 and np.array_equal(a.raw, b.raw) and a.frame.depth is None

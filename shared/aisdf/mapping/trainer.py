@@ -23,7 +23,7 @@ from .losses import training_loss
 from .sampling import SURFEL, sample_batch
 
 CHECKPOINT_FORMAT = "aisdf-trainer-checkpoint"
-CHECKPOINT_VERSION = 1
+CHECKPOINT_VERSION = 2  # 2: keyframes sent as <u2 are written raw (depth_raw, depth_scale; depth None); 1 still loads
 
 
 def resolve_device(name: str) -> torch.device:

@@ -18,7 +18,7 @@ if TYPE_CHECKING:
     from .pipeline import SubmapPipeline
 
 CHECKPOINT_FORMAT = "aisdf-submaps-checkpoint"
-CHECKPOINT_VERSION = 1
+CHECKPOINT_VERSION = 2  # 2: keyframes sent as <u2 are written raw (depth_raw, depth_scale; depth None); 1 still loads
 
 
 class SubmapCheckpoints:
