@@ -242,7 +242,7 @@ def test_one_network_sends_its_measured_points_1_5(seq):
     err, err13 = np.abs(rep.sdf - gt).mean(), np.abs(r13.sdf - gt).mean()
     print(f"1.5 answer {100 * err:.2f} cm, 1.3 answer {100 * err13:.2f} cm")
     assert err < err13
-    # The bake answers the rule too: this 25-step toy network is far from the truth (tens of
+    # The bake answers the rule too: this 5-step toy network is far from the truth (tens of
     # centimetres) and the rule bends its field between the bake's samples, so the bake is held
     # to the truth here, not to the exact answer (the query bench measures its fidelity).
     e.bake_now()
