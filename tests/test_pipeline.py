@@ -270,8 +270,8 @@ def test_a_u2_keyframe_is_held_raw_with_the_same_training(seq, mapper):
     to the bit, so a map fed the same keyframes as ``<f4`` metres trains to the same bits.
     Checkpoints keep the raw values; a frame whose raw depth does not decode to its depth is
     held as floats."""
-    from aisdf.mapping.frames import Keyframe, clean_depth, decode_depth
-    from aisdf.geometry import normals_at
+    from aisdf.mapping.frames import Keyframe, clean_depth
+    from aisdf.geometry import decode_depth, normals_at
     from aisdf.submaps.pipeline import SubmapPipeline, restore_pipeline
 
     def make():

@@ -96,14 +96,20 @@ def normals_from_depth(depth: np.ndarray, K: np.ndarray, max_jump: float = 0.1) 
     return n
 
 
+def decode_depth(raw: np.ndarray, scale: float) -> np.ndarray:
+    """float32 metres of raw ``<u2`` depth (metres = raw / scale): the one decoding of the wire's
+    integer depth (``protocol.Keyframe.depth_m``, stored keyframes, ``normals_at``), so a value is
+    the same float whether a whole image or a few pixels are decoded."""
+    return np.asarray(raw).astype(np.float32) / np.float32(scale)
+
+
 def normals_at(depth: np.ndarray, K: np.ndarray, v: np.ndarray, u: np.ndarray, max_jump: float = 0.1,
                scale: float | None = None) -> np.ndarray:
     """``normals_from_depth(depth, K, max_jump)[v, u]`` for a few pixels (N,), computed from
     their four neighbours only: (N, 3) camera-frame normals, NaN where that gives NaN
     (the image's border, invalid neighbours, occlusion boundaries). What training needs of a
     keyframe's normals, at the pixels it samples, without holding an image of them.
-    ``scale``: ``depth`` is raw ``<u2`` (metres = depth / scale, decoded as
-    ``protocol.Keyframe.depth_m`` does, stencil pixels only)."""
+    ``scale``: ``depth`` is raw ``<u2`` (``decode_depth``, stencil pixels only)."""
     d = np.asarray(depth)  # only the stencils' pixels are converted to float64
     H, W = d.shape
     v, u = np.asarray(v, np.int64).reshape(-1), np.asarray(u, np.int64).reshape(-1)
@@ -116,9 +122,7 @@ def normals_at(depth: np.ndarray, K: np.ndarray, v: np.ndarray, u: np.ndarray, m
     # the pixel and its right, left, lower and upper neighbours, back-projected as backproject does
     vv = np.stack([vi, vi, vi, vi + 1, vi - 1])
     uu = np.stack([ui, ui + 1, ui - 1, ui, ui])
-    z = d[vv, uu]
-    if scale is not None:
-        z = z.astype(np.float32) / np.float32(scale)
+    z = d[vv, uu] if scale is None else decode_depth(d[vv, uu], scale)
     z = z.astype(np.float64)  # (5, M)
     x, y = (uu - cx) / fx * z, (vv - cy) / fy * z
     none = ~(z > 0)

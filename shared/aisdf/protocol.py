@@ -31,6 +31,7 @@ from .codec import (  # noqa: F401 - re-exported: protocol is the public entry p
     pack,
     unpack,
 )
+from .geometry import decode_depth
 
 
 # ----------------------------------------------------------------------------- messages
@@ -51,7 +52,7 @@ class Keyframe:
     def depth_m(self) -> np.ndarray:
         """Depth in metres as float32 (H, W); 0 where there is no measurement."""
         if self.depth.dtype == np.uint16:
-            d = self.depth.astype(np.float32) / np.float32(self.depth_scale)
+            d = decode_depth(self.depth, self.depth_scale)
         else:
             d = self.depth.astype(np.float32, copy=True)
             d[~np.isfinite(d)] = 0.0

@@ -15,14 +15,9 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from .. import geometry
+from ..geometry import decode_depth
 from ..structure.surfel_types import FIELDS as SURFEL_FIELDS
 from ..structure.surfel_types import Surfels
-
-
-def decode_depth(raw: np.ndarray, scale: float) -> np.ndarray:
-    """float32 metres of raw ``<u2`` depth: the arithmetic of ``protocol.Keyframe.depth_m``,
-    so a value decoded here is the same float whether the whole image or a few pixels are."""
-    return np.asarray(raw).astype(np.float32) / np.float32(scale)
 
 
 @dataclass
