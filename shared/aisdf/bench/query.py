@@ -293,14 +293,11 @@ def report(res: dict) -> str:
     b, a, lg, pl = res["bake"], res["accuracy"], res["lag"], res["planners"]
     mp = res["map"]
     n_m = mp.get("measured_points") or 0
-    if mp.get("mapper", "single") == "submaps":
-        what = (f"{mp.get('submaps')} submaps ({mp.get('describe')}), {mp.get('surfels')} surfels, "
-                f"{n_m:,} measured points: `fused` is protocol 1.4's answer" if n_m else
-                f"{mp.get('submaps')} submaps ({mp.get('describe')}), {mp.get('surfels')} surfels, no measured "
-                "points: `fused` is protocol 1.3's answer")
-    else:
-        what = (f"one network, {mp.get('surfels')} surfels, {n_m:,} measured points: `fused` is protocol 1.5's "
-                "answer (1.4's rule)" if n_m else "one network, no measured points: `fused` is protocol 1.3's answer")
+    submaps = mp.get("mapper", "single") == "submaps"
+    what = (f"{mp.get('submaps')} submaps ({mp.get('describe')}), " if submaps else "one network, ") + \
+        f"{mp.get('surfels')} surfels, " + (
+            f"{n_m:,} measured points: `fused` is protocol " + ("1.4's answer" if submaps else "1.5's answer (1.4's rule)")
+            if n_m else "no measured points: `fused` is protocol 1.3's answer")
     lines = [f"Map: the demo building (office), {mp['keyframes']} keyframes, "
              f"{mp['train_steps']} training steps (cpu preset), {what}; torch threads {res['threads']} per "
              f"evaluation, {res['bake_threads']} bake threads. The lag row: the whole map republished each second "
