@@ -225,6 +225,33 @@ def test_observed_space_holds_every_voxel_seen_once_sorted_and_counts_the_new_on
     np.testing.assert_array_equal(obs.keys, np.unique(np.concatenate(seen)))
 
 
+def test_unknown_distance_exact_values_and_a_lower_bound_everywhere():
+    """Protocol 1.6: the distance from a point to space no keyframe observed (unobserved
+    voxels' cubes, and everything outside the grid): exact values on a block with a hole,
+    and against brute force over every unobserved cube on random grids: never above the
+    truth, and equal to it almost everywhere."""
+    occ = np.ones((10, 10, 10), bool)
+    occ[5, 5, 7] = False  # a hole: the cube [0.5, 0.6] x [0.5, 0.6] x [0.7, 0.8]
+    g = ObservedGrid(np.zeros(3), 0.1, occ)
+    pts = np.array([[0.5, 0.5, 0.5], [0.12, 0.5, 0.5], [0.55, 0.55, 0.45], [0.55, 0.55, 0.75], [0.3, 0.2, 0.95],
+                    [2.0, 2.0, 2.0], [0.5, 0.5, -0.01]])
+    np.testing.assert_allclose(g.unknown_distance(pts), [0.2, 0.12, 0.25, 0.0, 0.05, 0.0, 0.0], atol=1e-12)
+    empty = ObservedGrid(np.zeros(3), 0.1, np.zeros((2, 2, 2), bool))
+    assert not empty.unknown_distance(pts).any()
+    rng = np.random.default_rng(0)
+    for dense in (0.85, 0.97):
+        occ = rng.random((12, 11, 9)) < dense
+        g = ObservedGrid(np.array([1.0, -2.0, 0.3]), 0.1, occ)
+        p = g.origin + rng.uniform(0.0, [1.2, 1.1, 0.9], (3000, 3))  # inside the grid: every unobserved cube is in it
+        cen = g.origin + (np.argwhere(~np.pad(occ, 1)) - 0.5) * 0.1
+        truth = np.array([np.linalg.norm(np.maximum(np.abs(q - cen) - 0.05, 0), axis=1).min() for q in p])
+        u = g.unknown_distance(p)  # the k = 8 nearest centres
+        assert np.all(u <= truth + 1e-12) and np.all(truth - u <= 0.05 * np.sqrt(3)), dense
+        assert np.mean(np.abs(u - truth) < 1e-12) > 0.95, dense
+        np.testing.assert_allclose(g.unknown_distance(p, k=64), truth, atol=1e-12)
+        assert np.all(u[~g.contains(p)] == 0)
+
+
 def test_observed_space_rejects_malformed_grids():
     g = box_grid()
     m = g.to_msg()
@@ -311,6 +338,14 @@ def test_engine_radii_observed_and_points_outside_the_bake(trained):
 
     np.testing.assert_allclose(sph.collision, chomp_cost(sph.sdf, 0.2), atol=1e-6)
     assert sph.observed[:len(surf)].mean() > 0.99 and not sph.observed[len(surf):].any()
+    # 1.6: distances to unobserved space, only when asked; of the spheres' surfaces with radii.
+    assert base.unknown is None and sph.unknown is None
+    unk = e.answer_sdf(protocol.SdfRequest(pts, unknown=True))
+    np.testing.assert_allclose(unk.unknown, e.baked.state.observed.unknown_distance(pts), atol=1e-6)
+    assert np.all(unk.unknown[len(surf):] == 0) and np.mean(unk.unknown[:len(surf)] > 0) > 0.9
+    sph_u = e.answer_sdf(protocol.SdfRequest(pts, radii=radii, unknown=True))
+    np.testing.assert_allclose(sph_u.unknown, unk.unknown - radii.astype(np.float32), atol=1e-6)
+    assert e.baker.warm_unknown  # from now on each new map's index is built by the baker
     # Points outside the bake are answered by the network of the same map.
     net = e.answer_sdf(protocol.SdfRequest(far, gradient=True, exact=True))
     np.testing.assert_allclose(base.sdf[len(surf):], net.sdf, atol=1e-6)

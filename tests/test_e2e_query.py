@@ -74,12 +74,25 @@ def test_query_service_bakes_the_map_and_answers_planner_fields(small_map):
             err_b = np.abs(sc.unarr(msg["sdf"]) + radii - gt).mean()
             err_n = np.abs(exact.sdf - gt).mean()
             assert err_b < err_n + 0.005, (err_b, err_n)
+            # 1.6, a hand-built request: each point's distance to unobserved space, as the same map
+            # in-process gives it; taking the smaller of it and the answer (unknown space as
+            # occupied) is never less safe: fewer answers more than 5 cm above the truth.
+            status, m16 = sc.request(s, f"{NS}/query/sdf", {"v": 1, "points": sc.arr(pts, "<f8"), "unknown": True}, 30.0)
+            assert status == "ok", m16
+            u = sc.unarr(m16["unknown"])
+            np.testing.assert_allclose(u, e.answer_sdf(protocol.SdfRequest(pts, unknown=True)).unknown, atol=1e-6)
+            assert u.shape == (len(pts),) and u.min() >= 0 and u.max() > 0.2
+            safe = np.minimum(sc.unarr(m16["sdf"]), u)
+            high, high_safe = np.mean(sc.unarr(m16["sdf"]) - gt > 0.05), np.mean(safe - gt > 0.05)
+            print(f"answers > 5 cm too high: {100 * high:.2f} %, with unknown space as occupied {100 * high_safe:.2f} %")
+            assert high_safe <= high
             # Far from anything seen: not observed; an old (1.0) request still gets a 1.0 reply.
             status, msg = sc.request(s, f"{NS}/query/sdf", {"v": 1, "points": sc.arr([[50.0, 50, 50]], "<f4"),
                                                            "observed": True})
             assert status == "ok" and not sc.unarr(msg["observed"]).any()
             status, msg = sc.request(s, f"{NS}/query/sdf", {"v": 1, "points": sc.arr(pts[:5], "<f4")})
             assert status == "ok" and sc.unarr(msg["sdf"]).shape == (5,) and "observed" not in msg
+            assert "unknown" not in msg
             assert st.alive("query")
         finally:
             s.close()

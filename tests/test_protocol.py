@@ -125,7 +125,17 @@ def test_sdf_request_reply_roundtrip():
     b = P.SdfReply.from_msg(roundtrip(rep.to_msg()))
     assert b.map_version == 3 and b.gradient.shape == (10, 3) and b.collision.shape == (10,)
     b = P.SdfReply.from_msg(roundtrip(P.SdfReply(1, np.zeros(2, np.float32)).to_msg()))
-    assert b.gradient is None and b.collision is None
+    assert b.gradient is None and b.collision is None and b.unknown is None
+    # 1.6: "unknown" only when asked, both ways; absent from a request that does not ask.
+    assert "unknown" not in P.SdfRequest(pts).to_msg()
+    assert P.SdfRequest.from_msg(roundtrip(P.SdfRequest(pts, unknown=True).to_msg())).unknown
+    u = np.array([0.0, 0.25], np.float32)
+    b = P.SdfReply.from_msg(roundtrip(P.SdfReply(1, np.zeros(2, np.float32), unknown=u).to_msg()))
+    np.testing.assert_array_equal(b.unknown, u)
+    with pytest.raises(P.ProtocolError):  # one distance per point
+        P.SdfReply.from_msg(roundtrip(P.SdfReply(1, np.zeros(3, np.float32), unknown=u).to_msg()))
+    with pytest.raises(P.ProtocolError):
+        P.SdfRequest.from_msg({**P.SdfRequest(pts).to_msg(), "unknown": "yes"})
 
 
 def test_mesh_roundtrip():

@@ -82,6 +82,7 @@ class Baker:
         self.nice = nice
         self.surfel_tol = float(surfel_tol)
         self.enabled = enabled
+        self.warm_unknown = False  # 1.6: a planner asked for unknown distances; index each map's observed space
         self.baked: BakedMap | None = None  # swapped whole under _lock; readers take the reference
         self.bakes = 0
         self.failures = 0
@@ -146,6 +147,7 @@ class Baker:
         if cur is not None and cur.state.same_field(st):
             # Nothing to evaluate (the index's version moved on): the same bake answers for it.
             if cur.state.order != st.order or cur.state.surfel_version != st.surfel_version:
+                self._warm(st)
                 with self._lock:
                     if self.baked is cur:
                         self.baked = BakedMap(st, cur.field)
@@ -159,6 +161,7 @@ class Baker:
         # measured rule's ramp). A full bake of the new surfels differs from it by those moves.
         fld = bake(self.fused_fn(st if ref is st.surfels else st.with_surfels(ref, st.surfel_version)), st.observed,
                    self.config, previous=previous, dirty=dirty)
+        self._warm(st)
         with self._lock:
             cur = self.baked
             if cur is None or cur.state.order <= st.order:
@@ -170,6 +173,12 @@ class Baker:
                  st.version, fld.stats["blocks"], fld.stats["fine_blocks"], fld.stats["evaluations"],
                  fld.stats["reused"], self.last["wall_s"], fld.nbytes / 1e6)
         return self.baked
+
+    def _warm(self, st: MapState) -> None:
+        """Once planners ask for unknown distances (1.6): build the map's index of unobserved
+        space here, before its bake answers, not in the first request that needs it."""
+        if self.warm_unknown and st.observed is not None:
+            st.observed.unknown_index()
 
     def _dirty(self, baked: BakedMap, new: MapState):
         """Where the fused field of ``new`` may differ from the samples of ``baked``: (a

@@ -370,9 +370,16 @@ class QueryEngine:
         if req.observed:
             # No observed space from the mapper (a 1.0 mapper): nothing is known to be seen.
             observed = state.observed.contains(pts) if state.observed is not None else np.zeros(len(pts), bool)
+        unknown = None
+        if req.unknown:  # 1.6: without observed space every point is in unknown space
+            self.baker.warm_unknown = True  # the baker builds each new map's index before it answers
+            unknown = (state.observed.unknown_distance(pts) if state.observed is not None
+                       else np.zeros(len(pts))).astype(np.float32)
+            if req.radii is not None:
+                unknown = unknown - req.radii.astype(np.float32)
         return protocol.SdfReply(state.version, sdf.astype(np.float32, copy=False),
                                  grad.astype(np.float32, copy=False) if req.gradient else None, coll, observed,
-                                 baked, state.epoch)
+                                 baked, state.epoch, unknown)
 
     def answer_mesh(self, req: protocol.MeshRequest) -> protocol.MeshReply:
         state = self._state

@@ -63,13 +63,17 @@ class SdfClient:
         radii: np.ndarray | None = None,
         observed: bool = False,
         exact: bool = False,
+        unknown: bool = False,
     ) -> protocol.SdfReply:
         """Signed distances (and optionally gradients and CHOMP costs) of (N, 3) points.
 
         ``radii`` (N,): the points are sphere centres and distances (and costs) are those of
         the spheres' surfaces. ``observed``: also return per point whether any keyframe has
         seen that space (treat False as occupied for safe planning). ``exact``: the
-        network's answer instead of the baked field's.
+        network's answer instead of the baked field's. ``unknown`` (protocol 1.6): also return
+        per point the distance to the nearest space no keyframe has seen (``reply.unknown``;
+        with ``radii``, that of the sphere's surface): ``min(sdf, unknown)`` is the distance
+        of a planner that treats unknown space as occupied.
 
         With ``max_batch`` set, larger inputs are split into several requests and the
         replies concatenated (map_version is the smallest one seen)."""
@@ -86,7 +90,7 @@ class SdfClient:
         parts = []
         for i in range(0, max(len(pts), 1), step):
             req = protocol.SdfRequest(pts[i:i + step], gradient, collision_epsilon, source,
-                                      None if radii is None else radii[i:i + step], observed, exact)
+                                      None if radii is None else radii[i:i + step], observed, exact, unknown)
             parts.append(protocol.SdfReply.from_msg(transport.query(self._session, self._key(keys.QUERY_SDF),
                                                                     req.to_msg(), self.timeout)))
         if len(parts) == 1:
@@ -94,7 +98,7 @@ class SdfClient:
         cat = lambda name: None if getattr(parts[0], name) is None else np.concatenate([getattr(p, name) for p in parts])  # noqa: E731
         first = min(parts, key=lambda p: (p.map_epoch, p.map_version))
         return protocol.SdfReply(first.map_version, cat("sdf"), cat("gradient"), cat("collision"), cat("observed"),
-                                 all(p.baked for p in parts), first.map_epoch)
+                                 all(p.baked for p in parts), first.map_epoch, cat("unknown"))
 
     def sdf(self, points_W: np.ndarray, source: str = "fused") -> np.ndarray:
         return self.query(points_W, source=source).sdf

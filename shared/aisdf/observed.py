@@ -25,7 +25,7 @@ from collections.abc import Mapping
 import numpy as np
 
 from .codec import ProtocolError, _bad, decode_array, encode_array
-from .geometry import valid_depth
+from .geometry import kdtree, valid_depth
 
 _OFF = 1 << 20  # voxel indices in [-2^20, 2^20) pack into 21 bits each
 _MASK = (1 << 21) - 1
@@ -158,6 +158,46 @@ class ObservedGrid:
     def bounds(self) -> np.ndarray:
         """(2, 3) world box of the grid."""
         return np.stack([self.origin, self.origin + self.voxel * np.array(self.occ.shape)])
+
+    def unknown_index(self):
+        """(the cKDTree of the centres of the unobserved voxels that share a face with an
+        observed one, those centres (M, 3)), built once per grid (``unknown_distance``). The
+        grid is padded with one unobserved layer: outside the grid nothing is observed."""
+        idx = getattr(self, "_unknown", None)
+        if idx is None:
+            from scipy import ndimage
+
+            occ = np.pad(self.occ, 1)
+            rim = ndimage.binary_dilation(occ) & ~occ  # 6-neighbours of observed voxels
+            centres = self.origin + (np.argwhere(rim) - 0.5) * self.voxel
+            idx = (kdtree(centres, leafsize=32) if len(centres) else None, centres)
+            self._unknown = idx  # (a race builds it twice; the assignment is atomic)
+        return idx
+
+    def unknown_distance(self, points: np.ndarray, k: int = 8) -> np.ndarray:
+        """(N,) the distance from each point to the nearest space no keyframe observed (the
+        cubes of the unobserved voxels, and everything outside the grid); 0 in unobserved
+        space. A lower bound that is exact almost everywhere: the nearest point of unobserved
+        space lies on a face between an unobserved and an observed voxel, so the exact
+        distances to the cubes of the ``k`` unobserved voxels with the nearest centres are
+        taken, and only where a farther cube could be nearer (its centre at least the k-th
+        distance, so its cube at least that minus half a voxel diagonal) that bound instead."""
+        pts = np.asarray(points, np.float64).reshape(-1, 3)
+        out = np.zeros(len(pts))
+        seen = self.contains(pts)
+        tree, centres = self.unknown_index()
+        if not seen.any() or tree is None:
+            return out
+        q = pts[seen]
+        k = int(min(k, len(centres)))
+        d, i = tree.query(q, k=k)
+        d, i = d.reshape(len(q), k), i.reshape(len(q), k)
+        h = 0.5 * self.voxel
+        cube = np.linalg.norm(np.maximum(np.abs(q[:, None, :] - centres[i]) - h, 0.0), axis=2).min(axis=1)
+        if k < len(centres):
+            cube = np.minimum(cube, d[:, -1] - h * np.sqrt(3.0))
+        out[seen] = np.maximum(cube, 0.0)
+        return out
 
     def to_msg(self) -> dict:
         return {"origin": [float(x) for x in self.origin], "voxel": self.voxel,

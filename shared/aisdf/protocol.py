@@ -307,6 +307,7 @@ class SdfRequest:
     radii: np.ndarray | None = None  # (N,) sphere radii: distances are to the sphere's surface
     observed: bool = False  # also answer, per point, whether any keyframe has seen that space
     exact: bool = False  # evaluate the network now instead of the baked field
+    unknown: bool = False  # protocol 1.6: also answer each point's distance to unobserved space
 
     def to_msg(self) -> dict:
         pts = np.asarray(self.points)
@@ -322,6 +323,8 @@ class SdfRequest:
             msg["observed"] = True
         if self.exact:
             msg["exact"] = True
+        if self.unknown:
+            msg["unknown"] = True
         return msg
 
     @classmethod
@@ -348,7 +351,8 @@ class SdfRequest:
                 raise _bad("'radii' must be finite and non-negative")
         observed = _get(msg, "observed", bool, False, "a boolean")
         exact = _get(msg, "exact", bool, False, "a boolean")
-        return cls(points, gradient, eps, source, radii, observed, exact)
+        unknown = _get(msg, "unknown", bool, False, "a boolean")
+        return cls(points, gradient, eps, source, radii, observed, exact, unknown)
 
 
 @dataclass
@@ -361,6 +365,7 @@ class SdfReply:
     observed: np.ndarray | None = None  # (N,) bool, when asked
     baked: bool = False  # True when the baked field answered (points outside it: the network of the same map)
     map_epoch: int = 0  # the mapper incarnation of map_version (1.2)
+    unknown: np.ndarray | None = None  # (N,) metres to unobserved space, when asked (1.6)
 
     def to_msg(self) -> dict:
         msg = {"v": VERSION, "map_version": int(self.map_version), "sdf": encode_array(self.sdf, "<f4"),
@@ -371,6 +376,8 @@ class SdfReply:
             msg["collision"] = encode_array(self.collision, "<f4")
         if self.observed is not None:
             msg["observed"] = encode_array(np.asarray(self.observed, dtype=np.uint8), "|u1")
+        if self.unknown is not None:
+            msg["unknown"] = encode_array(self.unknown, "<f4")
         return msg
 
     @classmethod
@@ -383,7 +390,8 @@ class SdfReply:
         obs = decode_array(msg["observed"], "observed", ("|u1",), (n,)).astype(bool) if "observed" in msg else None
         baked = _get(msg, "baked", bool, False, "a boolean")
         epoch = _get(msg, "map_epoch", int, 0, "an integer")
-        return cls(mv, sdf, grad, coll, obs, baked, epoch)
+        unk = decode_array(msg["unknown"], "unknown", ("<f4",), (n,)) if "unknown" in msg else None
+        return cls(mv, sdf, grad, coll, obs, baked, epoch, unk)
 
 
 @dataclass
