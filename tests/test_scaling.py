@@ -32,6 +32,7 @@ def test_quick_scaling_table(result):
     assert "| answers > 5 cm above the truth (served), end of the walk / +2 s (% of points) |" in md
     assert ("| fused with the measured surface (served since 1.4 with submaps, 1.5 with one network): error, end of the walk / "
             "+2 s (cm) |") in md and "fused answer: end of the walk" in md
+    assert "| unknown space as occupied (1.6: the smaller of the served answer and the distance to unobserved space)" in md
     assert cfg.source == "served"  # the criteria judge query/sdf's default answer for each mapper
     n, P = cfg.keyframes, cfg.period_s
     for m in methods:
@@ -53,7 +54,8 @@ def test_quick_scaling_table(result):
                 assert math.isfinite(r[f"error_{k}_cm"]) and 0 < r[f"error_{k}_cm"] < 200
                 by = r[f"error_{k}_by_source_cm"]  # the served answer (judged), 1.3's fused answer, the
                 # network alone, and the fused answer with the measured surface (structure.measured)
-                assert set(by) == {"served", "fused", "implicit", "measured"} and by[cfg.source] == r[f"error_{k}_cm"]
+                assert set(by) == {"served", "fused", "implicit", "measured", "unknown_occupied"}
+                assert by[cfg.source] == r[f"error_{k}_cm"]
                 # both mappers send measured points: served is the measured answer (1.4, 1.5)
                 assert by["served"] == by["measured"]
                 assert all(math.isfinite(v) and 0 < v < 200 for v in by.values())
@@ -61,6 +63,7 @@ def test_quick_scaling_table(result):
                 assert set(high) == set(by) and high[cfg.source] == r[f"too_high_{k}_pct"]
                 assert all(0 <= v <= 100 for v in high.values())
                 assert high["fused"] <= high["implicit"]  # the fusion only ever lowers an answer
+                assert high["unknown_occupied"] <= high["served"]  # (so does 1.6's min with unknown space)
             ms = r["measured_surface"]  # every keyframe's pixels pooled: some surface, timed, once
             assert ms["voxels"] > 0 and ms["bytes"] > 0 and ms["add_ms_mean"] > 0
             assert ms["pooled_by"] == "mapper" and ms["bytes"] == mem["measured"]  # its own pool, counted
@@ -106,6 +109,39 @@ def test_the_scorer_counts_answers_too_high_exactly():
     assert mae2["measured"] == mae2["fused"]
     expected = 100 * (30 * (TOO_HIGH_M + 0.01) + 20 * (TOO_HIGH_M - 0.01) + 40 * 0.2) / 200
     assert mae["fused"] == pytest.approx(expected, abs=1e-3)
+
+
+def test_the_scorer_answers_as_a_planner_that_takes_unknown_space_as_occupied():
+    """Protocol 1.6 in the bench: ``unknown_occupied`` is the smaller of the served answer and
+    the distance to space the mapper's observed grid does not hold."""
+    import numpy as np
+
+    from aisdf.bench.scaling_walk import _Scorer
+    from aisdf.observed import ObservedGrid
+
+    class Space:  # a 1 m cube of observed space, (0, 0, 0) to (1, 1, 1)
+        def __len__(self):
+            return 1000
+
+        def grid(self):
+            return ObservedGrid(np.zeros(3), 0.1, np.ones((10, 10, 10), bool))
+
+    x = np.array([0.5, 0.22, 0.05, 0.5])
+    pts = np.stack([x, np.full(4, 0.5), np.full(4, 0.5)], axis=1)
+    gt = np.array([0.1, 0.2, 0.3, 0.4])
+    net = np.array([0.1, 0.4, 0.3, 0.45])  # too high at the second point
+
+    class Pipe:
+        observed, n_keyframes = Space(), 3
+
+        def sdf(self, points):
+            return net.astype(np.float32)
+
+    mae, high, _ = _Scorer(pts, gt).evaluate(Pipe())
+    # unknown space 0.5, 0.22, 0.05, 0.5 away: the answers 0.1, 0.22, 0.05 (too low), 0.45
+    want = np.abs(np.array([0.1, 0.22, 0.05, 0.45]) - gt).mean()
+    assert mae["unknown_occupied"] == pytest.approx(100 * want, abs=1e-3)
+    assert high["served"] == 25.0 and high["unknown_occupied"] == 0.0
 
 
 def test_the_scorer_finds_the_error_at_surfaces_no_keyframe_measured():

@@ -174,29 +174,40 @@ class ObservedGrid:
             self._unknown = idx  # (a race builds it twice; the assignment is atomic)
         return idx
 
-    def unknown_distance(self, points: np.ndarray, k: int = 8) -> np.ndarray:
+    def unknown_distance(self, points: np.ndarray, k: int = 8, k_max: int = 512) -> np.ndarray:
         """(N,) the distance from each point to the nearest space no keyframe observed (the
         cubes of the unobserved voxels, and everything outside the grid); 0 in unobserved
-        space. A lower bound that is exact almost everywhere: the nearest point of unobserved
-        space lies on a face between an unobserved and an observed voxel, so the exact
-        distances to the cubes of the ``k`` unobserved voxels with the nearest centres are
-        taken, and only where a farther cube could be nearer (its centre at least the k-th
-        distance, so its cube at least that minus half a voxel diagonal) that bound instead."""
+        space. The nearest point of unobserved space lies on a face between an unobserved and
+        an observed voxel, so the exact distances to the cubes of the ``k`` such voxels with
+        the nearest centres are taken; a cube farther in that order is at least the k-th
+        centre's distance minus half a voxel diagonal away, and where that could be nearer the
+        point is asked again with 8 times as many (up to ``k_max``, beyond which that bound is
+        the answer). So the answer is exact but where ``k_max`` cubes tie within half a voxel
+        diagonal, and never more than the exact distance."""
         pts = np.asarray(points, np.float64).reshape(-1, 3)
         out = np.zeros(len(pts))
         seen = self.contains(pts)
         tree, centres = self.unknown_index()
         if not seen.any() or tree is None:
             return out
-        q = pts[seen]
-        k = int(min(k, len(centres)))
-        d, i = tree.query(q, k=k)
-        d, i = d.reshape(len(q), k), i.reshape(len(q), k)
         h = 0.5 * self.voxel
-        cube = np.linalg.norm(np.maximum(np.abs(q[:, None, :] - centres[i]) - h, 0.0), axis=2).min(axis=1)
-        if k < len(centres):
-            cube = np.minimum(cube, d[:, -1] - h * np.sqrt(3.0))
-        out[seen] = np.maximum(cube, 0.0)
+        todo = np.flatnonzero(seen)
+        while len(todo):
+            q = pts[todo]
+            kk = int(min(k, len(centres)))
+            d, i = tree.query(q, k=kk)
+            d, i = d.reshape(len(q), kk), i.reshape(len(q), kk)
+            cube = np.linalg.norm(np.maximum(np.abs(q[:, None, :] - centres[i]) - h, 0.0), axis=2).min(axis=1)
+            rest = d[:, -1] - h * np.sqrt(3.0)  # no cube beyond the k-th centre is nearer than this
+            if kk == len(centres):
+                open_ = np.zeros(len(q), bool)
+            else:
+                open_ = rest < cube
+                if k >= k_max:  # give up on exactness: the bound
+                    cube = np.minimum(cube, rest)
+                    open_[:] = False
+            out[todo[~open_]] = np.maximum(cube[~open_], 0.0)
+            todo, k = todo[open_], k * 8
         return out
 
     def to_msg(self) -> dict:

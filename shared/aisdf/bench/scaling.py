@@ -209,6 +209,12 @@ def report(res: dict) -> str:
          lambda r: f"{r['too_high_walk_end_by_source_pct']['measured']:.1f} / "
          f"{r['too_high_end_by_source_pct']['measured']:.1f}"
          if "measured" in r.get("too_high_end_by_source_pct", {}) else "-"),
+        (f"unknown space as occupied (1.6: the smaller of the served answer and the distance to unobserved space): "
+         f"error, end of the walk / +{cfg['tail_s']:g} s (cm); answers > {100 * TOO_HIGH_M:g} cm above the truth, the same (%)",
+         lambda r: f"{r['error_walk_end_by_source_cm']['unknown_occupied']:.2f} / "
+         f"{r['error_end_by_source_cm']['unknown_occupied']:.2f}; {r['too_high_walk_end_by_source_pct']['unknown_occupied']:.1f}"
+         f" / {r['too_high_end_by_source_pct']['unknown_occupied']:.1f}"
+         if "unknown_occupied" in r.get("error_end_by_source_cm", {}) else "-"),
         (f"points whose nearest surface no keyframe measured ({src}), +{cfg['tail_s']:g} s: % of points, their "
          "part of the error / the error on the others (cm)",
          lambda r: f"{r['unmeasured_end']['points_pct']:.1f} %: {r['unmeasured_end']['error_cm']:.2f} / "

@@ -74,7 +74,9 @@ class _Scorer:
     protocol 1.3's answer), that with the measured surface (``measured``,
     ``structure.measured``; ``measured`` gives the distance to the nearest measured point),
     and what ``query/sdf`` serves by default for this mapper (``served``: ``measured`` when
-    the mapper publishes measured points, protocols 1.4 and 1.5, else ``fused``); and, given
+    the mapper publishes measured points, protocols 1.4 and 1.5, else ``fused``), and the
+    smaller of that and the distance to unobserved space (``unknown_occupied``: a planner
+    that treats unknown space as occupied, protocol 1.6); and, given
     ``measured``, where the error of ``source``'s answer is: the share of points whose
     nearest surface no keyframe measured (``UNMEASURED_M``), their part of the mean error
     and the mean error on the other points.
@@ -101,6 +103,9 @@ class _Scorer:
             out["measured"] = measured_fuse(out["fused"], f, d_e, d_m)
             observed = np.minimum(np.abs(d_e), d_m)
         out["served"] = out["measured"] if serves_measured(pipe) and measured is not None else out["fused"]
+        grid = _observed_grid(pipe)
+        if grid is not None:  # protocol 1.6: a planner that treats unknown space as occupied
+            out["unknown_occupied"] = np.minimum(out["served"], grid.unknown_distance(self.points))
         return out, observed
 
     def evaluate(self, pipe, measured=None, source: str = "served") -> tuple[dict, dict, dict]:
@@ -122,6 +127,21 @@ class _Scorer:
 
     def score(self, pipe, source: str = "served", measured=None) -> float:
         return self.evaluate(pipe, measured, source)[0][source]
+
+
+_GRID: dict = {}  # the observed grid of the newest (mapper, keyframe count) scored: rooms and the whole share it
+
+
+def _observed_grid(pipe):
+    """The mapper's observed space as a grid (what the query service gets), or None."""
+    space = getattr(pipe, "observed", None)
+    if space is None or not len(space):
+        return None
+    key = (id(pipe), int(pipe.n_keyframes), len(space))
+    if _GRID.get("key") != key:
+        _GRID.clear()
+        _GRID.update(key=key, grid=space.grid())
+    return _GRID["grid"]
 
 
 def serves_measured(pipe) -> bool:
