@@ -193,21 +193,23 @@ class ObservedGrid:
         h = 0.5 * self.voxel
         todo = np.flatnonzero(seen)
         while len(todo):
-            q = pts[todo]
             kk = int(min(k, len(centres)))
-            d, i = tree.query(q, k=kk)
-            d, i = d.reshape(len(q), kk), i.reshape(len(q), kk)
-            cube = np.linalg.norm(np.maximum(np.abs(q[:, None, :] - centres[i]) - h, 0.0), axis=2).min(axis=1)
-            rest = d[:, -1] - h * np.sqrt(3.0)  # no cube beyond the k-th centre is nearer than this
-            if kk == len(centres):
-                open_ = np.zeros(len(q), bool)
-            else:
-                open_ = rest < cube
-                if k >= k_max:  # give up on exactness: the bound
-                    cube = np.minimum(cube, rest)
+            chunk = max(1, (1 << 20) // kk)  # bounds the (points, k, 3) temporaries to ~25 MB
+            again = []
+            for j in range(0, len(todo), chunk):
+                ids = todo[j:j + chunk]
+                q = pts[ids]
+                d, i = tree.query(q, k=kk)
+                d, i = d.reshape(len(q), kk), i.reshape(len(q), kk)
+                cube = np.linalg.norm(np.maximum(np.abs(q[:, None, :] - centres[i]) - h, 0.0), axis=2).min(axis=1)
+                rest = d[:, -1] - h * np.sqrt(3.0)  # no cube beyond the k-th centre is nearer than this
+                open_ = np.zeros(len(q), bool) if kk == len(centres) else rest < cube
+                if k >= k_max:  # give up on exactness there: the bound
+                    cube = np.where(open_, rest, cube)
                     open_[:] = False
-            out[todo[~open_]] = np.maximum(cube[~open_], 0.0)
-            todo, k = todo[open_], k * 8
+                out[ids[~open_]] = np.maximum(cube[~open_], 0.0)
+                again.append(ids[open_])
+            todo, k = np.concatenate(again), k * 8
         return out
 
     def to_msg(self) -> dict:
