@@ -14,7 +14,8 @@ building's map.
    baked vs network (mean and 99th percentile difference, gradient cosine distance added)
    and each against the exact SDF.
 4. Latency and throughput: in-process and over Zenoh (a real ``aisdf-query`` process on
-   loopback), baked and network, 1k/10k/100k points, with and without gradients.
+   loopback), baked and network, 1k/10k/100k points, with and without gradients; and baked
+   with each point's distance to unknown space (protocol 1.6's ``unknown``).
 5. Lag: weights published at the demo's snapshot rate (1 Hz); how far the answering map
    trails the newest weights, sampled at 10 Hz.
 6. Concurrent planners: 8 planners sending 10,000-point requests back to back for
@@ -192,14 +193,15 @@ def run(out: str | Path = "runs/bench-query", sizes=(1_000, 10_000, 100_000), re
                     q = pts[rng.choice(len(pts), npts, replace=False)].astype(np.float32)
                     reps = max(5, repeats if npts <= 10_000 else repeats // 4)
                     row = {"points": npts, "gradient": grad}
-                    for exact in (False, True):
-                        name = "network" if exact else "baked"
-                        req = protocol.SdfRequest(q, grad, exact=exact)
+                    # 1.6: baked answers with each point's distance to unknown space
+                    for name, exact, unknown in (("baked", False, False), ("network", True, False),
+                                                 ("baked + unknown", False, True)):
+                        req = protocol.SdfRequest(q, grad, exact=exact, unknown=unknown)
                         t_in = _time(lambda: eng.answer_sdf(req), reps if not exact else max(3, reps // 2))
-                        t_z = _time(lambda: client.query(q, gradient=grad, exact=exact),
+                        t_z = _time(lambda: client.query(q, gradient=grad, exact=exact, unknown=unknown),
                                     reps if not exact else max(3, reps // 2))
-                        r = client.query(q, gradient=grad, exact=exact)
-                        assert r.baked == (not exact)
+                        r = client.query(q, gradient=grad, exact=exact, unknown=unknown)
+                        assert r.baked == (not exact) and (r.unknown is not None) == unknown
                         row[name] = {"inproc": _pcts(t_in), "zenoh": _pcts(t_z),
                                      "inproc_pts_s": npts / float(np.median(t_in)),
                                      "zenoh_pts_s": npts / float(np.median(t_z))}
@@ -322,7 +324,9 @@ def report(res: dict) -> str:
              "| points | gradient | path | in-process p50 / p99 (ms) | in-process (pts/s) | Zenoh p50 / p95 / p99 (ms) "
              "| Zenoh (pts/s) |", "|---:|:---:|---|---:|---:|---:|---:|"]
     for r in res["latency"]:
-        for name in ("baked", "network"):
+        for name in ("baked", "network", "baked + unknown"):
+            if name not in r:  # (a run before protocol 1.6)
+                continue
             x = r[name]
             lines.append(f"| {r['points']:,} | {'yes' if r['gradient'] else 'no'} | {name} | "
                          f"{x['inproc']['p50']:.2f} / {x['inproc']['p99']:.2f} | {x['inproc_pts_s']:,.0f} | "
