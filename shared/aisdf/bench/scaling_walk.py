@@ -129,18 +129,19 @@ class _Scorer:
         return self.evaluate(pipe, measured, source)[0][source]
 
 
-_GRID: dict = {}  # the observed grid of the newest (mapper, keyframe count) scored: rooms and the whole share it
+_GRID: dict = {}  # the newest observed space scored and its grid: the rooms and the whole share one build
 
 
 def _observed_grid(pipe):
-    """The mapper's observed space as a grid (what the query service gets), or None."""
+    """The mapper's observed space as a grid (what the query service gets), or None. Built
+    once per state of the space: it only grows, so its voxel count tells a change; the space
+    itself is held, so no other object can take its identity while cached."""
     space = getattr(pipe, "observed", None)
     if space is None or not len(space):
         return None
-    key = (id(pipe), int(pipe.n_keyframes), len(space))
-    if _GRID.get("key") != key:
+    if _GRID.get("space") is not space or _GRID.get("n") != len(space):
         _GRID.clear()
-        _GRID.update(key=key, grid=space.grid())
+        _GRID.update(space=space, n=len(space), grid=space.grid())
     return _GRID["grid"]
 
 
