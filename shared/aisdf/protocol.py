@@ -1,6 +1,10 @@
 """Wire protocol v1 (protocol.md): one MessagePack map per payload, arrays as
 ``{"dtype", "shape", "data"}`` maps. Pure: bytes in, typed messages out.
 
+The map's messages are here; the planners' requests and replies (``SdfRequest``,
+``SdfReply``, ``MeshRequest``, ``MeshReply``) live in :mod:`aisdf.query_messages` and are
+re-exported, so ``protocol.SdfRequest`` stays the public name.
+
 Every decoding problem raises :class:`ProtocolError` with a protocol error code
 (``bad_request`` for anything malformed); nothing here ever raises anything else on
 untrusted input.
@@ -32,6 +36,7 @@ from .codec import (  # noqa: F401 - re-exported: protocol is the public entry p
     unpack,
 )
 from .geometry import decode_depth
+from .query_messages import MeshReply, MeshRequest, SdfReply, SdfRequest  # noqa: F401 - re-exported
 
 
 # ----------------------------------------------------------------------------- messages
@@ -295,143 +300,6 @@ class SurfelMap:
         epoch = _get(msg, "epoch", int, 0, "an integer")
         return cls(version, stamp, vertical.copy(), horizontal.copy(), {k: v.copy() for k, v in surfels.items()},
                    epoch)
-
-
-@dataclass
-class SdfRequest:
-    points: np.ndarray  # (N, 3) float32 or float64, world frame
-    gradient: bool = False
-    collision_epsilon: float | None = None
-    source: str = "fused"
-    # protocol 1.1 (optional; a 1.0 service ignores them):
-    radii: np.ndarray | None = None  # (N,) sphere radii: distances are to the sphere's surface
-    observed: bool = False  # also answer, per point, whether any keyframe has seen that space
-    exact: bool = False  # evaluate the network now instead of the baked field
-    unknown: bool = False  # protocol 1.6: also answer each point's distance to unobserved space
-
-    def to_msg(self) -> dict:
-        pts = np.asarray(self.points)
-        if pts.dtype != np.float64:
-            pts = pts.astype(np.float32)
-        msg = {"v": VERSION, "points": encode_array(pts), "gradient": bool(self.gradient), "source": self.source}
-        if self.collision_epsilon is not None:
-            msg["collision_epsilon"] = float(self.collision_epsilon)
-        if self.radii is not None:
-            r = np.asarray(self.radii)
-            msg["radii"] = encode_array(r if r.dtype == np.float64 else r.astype(np.float32))
-        if self.observed:
-            msg["observed"] = True
-        if self.exact:
-            msg["exact"] = True
-        if self.unknown:
-            msg["unknown"] = True
-        return msg
-
-    @classmethod
-    def from_msg(cls, msg: Mapping, max_points: int | None = None) -> "SdfRequest":
-        pts_obj = msg.get("points")
-        if isinstance(pts_obj, Mapping) and max_points is not None:
-            shp = pts_obj.get("shape")
-            if isinstance(shp, (list, tuple)) and shp and isinstance(shp[0], int) and shp[0] > max_points:
-                raise ProtocolError("too_large", f"{shp[0]} points exceed this service's limit of {max_points}")
-        points = decode_array(pts_obj, "points", ("<f4", "<f8"), (None, 3))
-        if not np.all(np.isfinite(points)):
-            raise _bad("points contain non-finite values")
-        gradient = _get(msg, "gradient", bool, False, "a boolean")
-        eps = _number(msg, "collision_epsilon", None)
-        if eps is not None and eps <= 0:
-            raise _bad(f"'collision_epsilon' must be positive, got {eps}")
-        source = _get(msg, "source", str, "fused", "a string")
-        if source not in SDF_SOURCES:
-            raise _bad(f"'source' must be one of {list(SDF_SOURCES)}, got {source!r}")
-        radii = None
-        if msg.get("radii") is not None:
-            radii = decode_array(msg.get("radii"), "radii", ("<f4", "<f8"), (len(points),))
-            if not np.all(np.isfinite(radii)) or (len(radii) and radii.min() < 0):
-                raise _bad("'radii' must be finite and non-negative")
-        observed = _get(msg, "observed", bool, False, "a boolean")
-        exact = _get(msg, "exact", bool, False, "a boolean")
-        unknown = _get(msg, "unknown", bool, False, "a boolean")
-        return cls(points, gradient, eps, source, radii, observed, exact, unknown)
-
-
-@dataclass
-class SdfReply:
-    map_version: int
-    sdf: np.ndarray
-    gradient: np.ndarray | None = None
-    collision: np.ndarray | None = None
-    # protocol 1.1 / 1.2 (a 1.0 client ignores them):
-    observed: np.ndarray | None = None  # (N,) bool, when asked
-    baked: bool = False  # True when the baked field answered (points outside it: the network of the same map)
-    map_epoch: int = 0  # the mapper incarnation of map_version (1.2)
-    unknown: np.ndarray | None = None  # (N,) metres to unobserved space, when asked (1.6)
-
-    def to_msg(self) -> dict:
-        msg = {"v": VERSION, "map_version": int(self.map_version), "sdf": encode_array(self.sdf, "<f4"),
-               "map_epoch": int(self.map_epoch), "baked": bool(self.baked)}
-        if self.gradient is not None:
-            msg["gradient"] = encode_array(self.gradient, "<f4")
-        if self.collision is not None:
-            msg["collision"] = encode_array(self.collision, "<f4")
-        if self.observed is not None:
-            msg["observed"] = encode_array(np.asarray(self.observed, dtype=np.uint8), "|u1")
-        if self.unknown is not None:
-            msg["unknown"] = encode_array(self.unknown, "<f4")
-        return msg
-
-    @classmethod
-    def from_msg(cls, msg: Mapping) -> "SdfReply":
-        mv = _get(msg, "map_version", int, what="an integer")
-        sdf = decode_array(msg.get("sdf"), "sdf", ("<f4",), (None,))
-        n = len(sdf)
-        grad = decode_array(msg["gradient"], "gradient", ("<f4",), (n, 3)) if "gradient" in msg else None
-        coll = decode_array(msg["collision"], "collision", ("<f4",), (n,)) if "collision" in msg else None
-        obs = decode_array(msg["observed"], "observed", ("|u1",), (n,)).astype(bool) if "observed" in msg else None
-        baked = _get(msg, "baked", bool, False, "a boolean")
-        epoch = _get(msg, "map_epoch", int, 0, "an integer")
-        unk = decode_array(msg["unknown"], "unknown", ("<f4",), (n,)) if "unknown" in msg else None
-        return cls(mv, sdf, grad, coll, obs, baked, epoch, unk)
-
-
-@dataclass
-class MeshRequest:
-    resolution: float | None = None
-
-    def to_msg(self) -> dict:
-        msg = {"v": VERSION}
-        if self.resolution is not None:
-            msg["resolution"] = float(self.resolution)
-        return msg
-
-    @classmethod
-    def from_msg(cls, msg: Mapping) -> "MeshRequest":
-        res = _number(msg, "resolution", None)
-        if res is not None and res <= 0:
-            raise _bad(f"'resolution' must be positive, got {res}")
-        return cls(res)
-
-
-@dataclass
-class MeshReply:
-    map_version: int
-    vertices: np.ndarray
-    faces: np.ndarray
-
-    def to_msg(self) -> dict:
-        return {
-            "v": VERSION,
-            "map_version": int(self.map_version),
-            "vertices": encode_array(np.asarray(self.vertices).reshape(-1, 3), "<f4"),
-            "faces": encode_array(np.asarray(self.faces).reshape(-1, 3), "<i4"),
-        }
-
-    @classmethod
-    def from_msg(cls, msg: Mapping) -> "MeshReply":
-        mv = _get(msg, "map_version", int, what="an integer")
-        v = decode_array(msg.get("vertices"), "vertices", ("<f4",), (None, 3))
-        f = decode_array(msg.get("faces"), "faces", ("<i4",), (None, 3))
-        return cls(mv, v, f)
 
 
 def _int_list(msg: Mapping, name: str) -> list[int]:
