@@ -39,10 +39,10 @@ COPY --from=build /usr/local/bin/aisdf* /usr/local/bin/
 RUN aisdf-mapper --version && aisdf-query --version && aisdf-frontend --version && aisdf-router --version \
     && aisdf-health --help >/dev/null \
     && python -c "import aisdf_mapper.main, aisdf_query.main, aisdf_frontend.main, numpy as np; \
-from aisdf.pipeline import MappingPipeline; from aisdf.synthetic import SyntheticSequence; \
+from aisdf.mapper.factory import make_mapper; from aisdf.synthetic import SyntheticSequence; \
 from aisdf.mapping.frames import Frame; \
 f = SyntheticSequence(building='atlanta', n_frames=10, H=30, W=40).frame(0); \
-p = MappingPipeline.from_settings('cpu', {'network': {'width': 16}, 'n_rays': 10}); \
+p = make_mapper('single', 'cpu', {'network': {'width': 16}, 'n_rays': 10}); \
 p.add_keyframe(Frame(f['frame_id'], f['stamp'], f['depth'], f['K'], f['T_WC'])); p.step(); \
 print('smoke test: trained', p.steps, 'step(s)')" \
     && find /usr/local/lib/python3.11/site-packages -name __pycache__ -type d -prune -exec rm -rf {} +

@@ -2,7 +2,7 @@
 5 steps each), shared by the baked-field tests and the query service's end-to-end tests."""
 
 from aisdf.mapping.frames import Frame
-from aisdf.pipeline import MappingPipeline
+from aisdf.mapper.single import MappingPipeline
 from aisdf.synthetic import SyntheticSequence
 
 

@@ -1,4 +1,4 @@
-"""AiSDF vs iSDF at equal steps on a small synthetic Atlanta building (issue 3's acceptance,
+"""AiSDF vs iSDF at equal steps on a small synthetic Atlanta building (the acceptance check,
 in miniature): the network trained with the surfel mask and surfel loss, fused with the
 explicit surfel map (the paper's Sec. IV-D), has a lower SDF error than iSDF after the
 same number of steps, on iSDF's evaluation points (uniform along the rays of the seen
@@ -17,7 +17,7 @@ import torch
 from aisdf.structure.fusion import fuse
 from aisdf.mapping.frames import Frame
 from aisdf.metrics import eval_points
-from aisdf.pipeline import MappingPipeline
+from aisdf.mapper.single import MappingPipeline
 from aisdf.structure.surfel_map import explicit_sdf
 from aisdf.synthetic import SyntheticSequence
 

@@ -282,7 +282,7 @@ def trained():
 
 
 def engine_with(trained, **kw):
-    from aisdf_query.engine import QueryEngine
+    from aisdf.query.engine import QueryEngine
 
     _, _, snap, smap = trained
     e = QueryEngine(device="cpu", **kw)

@@ -15,7 +15,7 @@ from aisdf import protocol
 from aisdf.metrics import eval_points
 from aisdf.network import NetworkConfig, SDFNetwork, model_spec, state_to_numpy
 from aisdf.stack import Stack, wait_for
-from aisdf_query.engine import QueryEngine
+from aisdf.query.engine import QueryEngine
 from small_map import train_small_map
 
 pytestmark = pytest.mark.e2e

@@ -16,7 +16,7 @@ from aisdf.stack import Stack, wait_for
 
 pytestmark = pytest.mark.e2e
 NS = "aisdf/e2e13"
-MAPPER = ["--preset", "cpu", "--submaps", "--set", "training.network.width=32", "--set", "submap.cell_m=3",
+MAPPER = ["--preset", "cpu", "--mapper", "submaps", "--set", "training.network.width=32", "--set", "submap.cell_m=3",
           "--set", "log_level=INFO"]
 
 
@@ -140,7 +140,7 @@ def test_two_robots_walking_halves_map_as_well_as_one_robot_walking_all():
     # would be dropped)
     n, fps, settle_s = (600, 30.0, 240) if building == "office" else (300, 1.5, 900)
     building_args = ["--set", f"building={building}", "--set", f"fps={fps}", "--set", "hold_max=1000"]
-    mapper = ["--preset", "cpu", "--submaps", "--set", "training.network.width=64", "--set", "log_level=INFO"]
+    mapper = ["--preset", "cpu", "--mapper", "submaps", "--set", "training.network.width=64", "--set", "log_level=INFO"]
     one = Stack(services=("query", "mapper", "frontend"), namespace=NS + "/one",
                 args={"mapper": mapper, "frontend": frontend_args(n, "robot0") + building_args})
     two = Stack(services=("query", "mapper", "frontend", "frontend2"), namespace=NS + "/two",

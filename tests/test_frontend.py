@@ -4,8 +4,9 @@ import numpy as np
 
 from aisdf import geometry as g
 from aisdf import protocol
-from aisdf_frontend.config import FrontendConfig, KeyframeConfig
-from aisdf_frontend.keyframes import KeyframeSelector, overlap
+from aisdf_frontend.config import FrontendConfig
+from aisdf.keyframes import KeyframeConfig
+from aisdf.keyframes import KeyframeSelector, overlap
 from aisdf_frontend.main import stream, to_keyframe
 
 K = g.intrinsics(60.0, 60.0, 39.5, 29.5)

@@ -30,9 +30,9 @@ def test_measured_setting_reaches_both_mappers():
     def pooled(**kw):
         return MapperNode(MapperConfig(preset="cpu", **kw), session=None).pipeline.measured is not None
 
-    assert pooled() and pooled(submaps=False)
-    assert not pooled(measured=False) and not pooled(submaps=False, measured=False)
-    assert not pooled(submap={"measured": False}) and pooled(submaps=False, submap={"measured": False})
+    assert pooled() and pooled(mapper="single")
+    assert not pooled(measured=False) and not pooled(mapper="single", measured=False)
+    assert not pooled(submap={"measured": False}) and pooled(mapper="single", submap={"measured": False})
 
 
 class _Puts:
@@ -53,7 +53,7 @@ def test_one_network_service_publishes_and_checkpoints_its_measured_points(tmp_p
     from aisdf.synthetic import SyntheticSequence
 
     seq = SyntheticSequence(building="atlanta", n_frames=60, H=30, W=40, seed=1)
-    cfg = MapperConfig(preset="cpu", submaps=False, checkpoint_dir=tmp_path, namespace="t",
+    cfg = MapperConfig(preset="cpu", mapper="single", checkpoint_dir=tmp_path, namespace="t",
                        training={"network": {"width": 16}, "n_rays": 10})
     node = MapperNode(cfg, session=_Puts())
     own = MeasuredSurface(max_depth=node.pipeline.cfg.max_depth)

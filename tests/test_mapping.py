@@ -9,7 +9,7 @@ import torch
 from aisdf.mapping import PRESETS, Frame, KeyframeStore, Trainer, TrainingConfig, training_config
 from aisdf.mapping.presets import submap_training_config
 from aisdf.mapping.bounds import batch_bounds
-from aisdf.mapping.frames import Keyframe
+from aisdf.mapping.frames import StoredFrame
 from aisdf.mapping.losses import eikonal_term, grad_term, sdf_term, training_loss
 from aisdf.mapping.sampling import FREE, SURFACE, SURFEL, ray_depths, sample_batch, sample_frame
 from aisdf.structure.surfel_types import Surfels
@@ -197,7 +197,7 @@ def test_sample_frame_counts_and_geometry():
     depth[:, :40] = 13.0  # beyond 12 m: invalid
     depth[0, 50] = np.nan
     frame.depth = depth
-    kf = Keyframe.make(frame, cfg.max_depth)
+    kf = StoredFrame.make(frame, cfg.max_depth)
     batch = sample_frame(kf, 3, cfg, np.random.default_rng(0))
     assert len(batch) == 200 * 27 and np.all(batch.slot == 3)
     assert (batch.kind == SURFACE).sum() == 200 and np.all(batch.kind.reshape(200, 27)[:, 0] == SURFACE)
@@ -220,7 +220,7 @@ def test_surfel_sampling_and_mask():
     mask = np.zeros(frame.depth.shape, bool)
     mask[30:, :] = True
     frame.surfels, frame.surfel_mask = floor_surfels(), mask
-    kf = Keyframe.make(frame, 12.0)
+    kf = StoredFrame.make(frame, 12.0)
     rng = np.random.default_rng(0)
     # iSDF (both switches off): surfels are ignored.
     b0 = sample_frame(kf, 0, TrainingConfig(), rng)

@@ -7,11 +7,11 @@ import torch
 
 from aisdf import protocol
 from aisdf.mapping.frames import Frame
-from aisdf.pipeline import MappingPipeline
+from aisdf.mapper.single import MappingPipeline
 from aisdf.structure.surfel_types import Surfels
 from aisdf.synthetic import SyntheticSequence
-from aisdf_query.engine import QueryEngine
-from aisdf_query.mapstate import MapState
+from aisdf.query.engine import QueryEngine
+from aisdf.query.mapstate import MapState
 
 torch.set_num_threads(1)
 
@@ -139,7 +139,8 @@ def test_a_keyframe_holds_its_depth_once(seq, mapper):
     copy beside it) and its surfel mask as packed bits, the caller's frame is left as it was,
     the memory count does not count the depth twice, and a checkpoint brings back the same
     keyframes."""
-    from aisdf.submaps.pipeline import SubmapPipeline, restore_pipeline
+    from aisdf.mapper.factory import restore_mapper
+    from aisdf.submaps.pipeline import SubmapPipeline
 
     p = small() if mapper == "single" else SubmapPipeline.from_settings(
         "cpu", {"network": {"width": 32}, "n_rays": 20})
@@ -178,7 +179,7 @@ def test_a_keyframe_holds_its_depth_once(seq, mapper):
                 assert v.surfel_bits is p.frames[v.frame.key].surfel_bits  # shared, not copied
                 assert np.array_equal(v.pixel_mask, p._pixel_mask(v, c)) and v.pixel_mask.any()
     p.step()
-    back = restore_pipeline(p.checkpoint())
+    back = restore_mapper(p.checkpoint())
     again = back.trainer.store.keyframes if mapper == "single" else list(back.frames.values())
     assert [k.frame.key for k in again] == [k.frame.key for k in stored]
     for a, b in zip(again, stored):
@@ -270,9 +271,10 @@ def test_a_u2_keyframe_is_held_raw_with_the_same_training(seq, mapper):
     to the bit, so a map fed the same keyframes as ``<f4`` metres trains to the same bits.
     Checkpoints keep the raw values; a frame whose raw depth does not decode to its depth is
     held as floats."""
-    from aisdf.mapping.frames import Keyframe, clean_depth
+    from aisdf.mapping.frames import StoredFrame, clean_depth
     from aisdf.geometry import decode_depth, normals_at
-    from aisdf.submaps.pipeline import SubmapPipeline, restore_pipeline
+    from aisdf.mapper.factory import restore_mapper
+    from aisdf.submaps.pipeline import SubmapPipeline
 
     def make():
         torch.manual_seed(0)
@@ -319,8 +321,8 @@ def test_a_u2_keyframe_is_held_raw_with_the_same_training(seq, mapper):
     assert (ck["trainer"] if mapper == "single" else ck)["version"] == 2
     v1 = p_f.checkpoint()
     (v1["trainer"] if mapper == "single" else v1)["version"] = 1
-    np.testing.assert_array_equal(restore_pipeline(v1).sdf(pts), p_f.sdf(pts))
-    back = restore_pipeline(ck)
+    np.testing.assert_array_equal(restore_mapper(v1).sdf(pts), p_f.sdf(pts))
+    back = restore_mapper(ck)
     for a, b in zip(stored(back), stored(p_u2)):
         assert a.scale == 1000.0 and np.array_equal(a.raw, b.raw) and a.frame.depth is None
     p_u2.step()
@@ -328,6 +330,6 @@ def test_a_u2_keyframe_is_held_raw_with_the_same_training(seq, mapper):
     np.testing.assert_array_equal(back.sdf(pts), p_u2.sdf(pts))  # resumed where it stopped
     f = frame(seq, 0)  # raw depth that does not decode to the frame's depth: held as floats
     f.depth_raw, f.depth_scale = np.zeros(f.depth.shape, np.uint16), 1000.0
-    kf = Keyframe.make(f, 12.0)
+    kf = StoredFrame.make(f, 12.0)
     assert kf.scale is None and kf.raw.dtype == np.float32 and np.array_equal(
         kf.depth, clean_depth(f.depth, 12.0)) and not np.array_equal(kf.depth, decode_depth(f.depth_raw, 1000.0))

@@ -1,4 +1,4 @@
-"""The query service answering from submaps (protocol 1.3, issue 7 items 2-3): blended
+"""The query service answering from submaps (protocol 1.3): blended
 answers equal ``aisdf.submaps.field.blend`` over the submaps; values and gradients along
 lines crossing a submap boundary have no jump; the bake re-evaluates only what changed
 and equals a full bake; tiled meshes equal untiled ones and stay within a memory bound;
@@ -28,9 +28,9 @@ from aisdf.submaps.field import blend
 from aisdf.submaps.grid import SubmapGrid, cell_id
 from aisdf.structure.surfel_types import Surfels
 from aisdf.synthetic import SyntheticSequence
-from aisdf_query.engine import QueryEngine
-from aisdf_query.mapstate import MapState
-from aisdf_query.meshing import tiled_marching_cubes
+from aisdf.query.engine import QueryEngine
+from aisdf.query.mapstate import MapState
+from aisdf.query.meshing import tiled_marching_cubes
 
 torch.set_num_threads(1)
 NS = "aisdf/e2esub"
@@ -332,7 +332,7 @@ def test_answers_equal_the_submap_mappers_own_blend():
 
 
 def test_surfel_moves_below_the_tolerance_keep_samples_and_never_add_up():
-    from aisdf_query.changes import surfel_diff
+    from aisdf.query.changes import surfel_diff
 
     def surfels(dx):
         return Surfels(center=[[dx, 0, 1.0], [2, 0, 1]], normal=[[1.0, 0, 0], [0, 1.0, 0]],
@@ -359,7 +359,7 @@ def test_a_changed_surfel_dirties_only_where_it_is_or_was_the_nearest():
     wall grown by 1 m dirties far less than its box grown by the radius (what a re-bake
     re-evaluates)."""
     from aisdf.structure.surfel_map import explicit_sdf
-    from aisdf_query.changes import in_boxes, surfel_boxes, surfel_diff, surfel_dirty
+    from aisdf.query.changes import in_boxes, surfel_boxes, surfel_diff, surfel_dirty
 
     def room(wall_len, table_x):
         return Surfels(center=[[0, 2, 1.5], [0, -2, 1.5], [3, 0, 1.5], [-3, 0, 1.5], [0, 0, 0], [table_x, 0, 0.8]],
@@ -733,7 +733,7 @@ def test_e2e_real_submap_mapper_answers_planners(tmp_path):
     the baked blend of them, and its answers equal an in-process engine fed the same
     messages (heard by this test on the same keys)."""
     ns = NS + "/real"
-    mapper = ["--preset", "cpu", "--submaps", "--set", "training.network.width=32", "--set", "submap.cell_m=3"]
+    mapper = ["--preset", "cpu", "--mapper", "submaps", "--set", "training.network.width=32", "--set", "submap.cell_m=3"]
     frontend = ["--set", "n_frames=200", "--set", "width=80", "--set", "height=60", "--set", "linger=true", "--fast"]
     heard: dict = {"submaps": {}, "index": None, "surfels": None}
     lock = threading.Lock()

@@ -240,7 +240,7 @@ def test_live_ros2_robot_maps_like_the_protocol_v1_frontend(tmp_path):
     selects on the same synthetic frames (same ids; depth and K equal; poses through the TF
     chain within 1e-9), every one acknowledged; a malformed depth message is dropped and
     counted; and the same short training on each path's keyframes gives errors within 1.1x."""
-    import run_ros2_live_compare as cmp
+    from aisdf.bench import ros2_live as cmp
 
     n, W, H = 90, 80, 60
     r = cmp.run_path("ros2", n, W, H, log_dir=tmp_path, garbage_after=10,
@@ -333,7 +333,7 @@ def test_live_source_waits_for_its_robot_and_ends_on_sigterm(tmp_path):
 def test_a_robot_whose_tf_lacks_the_optical_rotation_is_refused_in_words(tmp_path):
     """The replay robot (map z up, as REP 105 asks) with /tf_static missing camera_link ->
     optical: the frontend checks its first 90 frames, maps nothing and exits saying why."""
-    import run_ros2_live_compare as cmp
+    from aisdf.bench import ros2_live as cmp
     from aisdf.stack import Stack
 
     port = free_port()

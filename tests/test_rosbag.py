@@ -3,7 +3,7 @@ the rosbag source over the three formats (rosbag2 sqlite3, rosbag2 MCAP, ROS 1) 
 frames they were written from (the synthetic building and real 7-Scenes frames), skipped
 frames, the wrong-TF check, the frontend's --list and refusal, and the real services end to end.
 
-The bags are written by ``rosbag_fixtures.py`` with the same library the reader uses."""
+The bags are written by ``aisdf.ros.record`` with the same library the reader uses."""
 
 from __future__ import annotations
 
@@ -21,9 +21,9 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation, Slerp
 
-import rosbag_fixtures as rf
 from aisdf.datasets import open_dataset, require_data
 from aisdf.ros import messages
+from aisdf.ros import record as rf
 from aisdf.ros.assemble import FrameAssembler
 from aisdf.ros.bag import RosbagSource
 from aisdf.ros.check import check_source
@@ -41,8 +41,8 @@ def _T(rotvec, t):
 
 
 def selected(frames, cfg=None):
-    from aisdf_frontend.config import KeyframeConfig
-    from aisdf_frontend.keyframes import KeyframeSelector
+    from aisdf.keyframes import KeyframeConfig
+    from aisdf.keyframes import KeyframeSelector
 
     sel = KeyframeSelector(cfg or KeyframeConfig())
     return [i for i, f in enumerate(frames) if sel.is_keyframe(f["stamp"], f["depth"], f["K"], f["T_WC"])]

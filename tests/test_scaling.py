@@ -207,7 +207,7 @@ def test_mean_record_averages_numbers_key_by_key():
 
 
 def test_several_seeds_are_judged_on_their_mean(tmp_path):
-    cfg = scaling.resolve("quick", out=str(tmp_path), progress=False, seeds=2, methods=["submaps"])
+    cfg = scaling.resolve("quick", out=str(tmp_path), progress=False, seeds=2, mappers=["submaps"])
     res = scaling.run(cfg)
     assert res["seeds"] == [0, 1] and [p["seed"] for p in res["per_seed"]] == [0, 1]
     each = [json.loads((tmp_path / f"seed-{s}" / "scaling.json").read_text()) for s in (0, 1)]

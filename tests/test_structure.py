@@ -7,7 +7,7 @@ import pytest
 from aisdf.mapping.frames import Frame
 from aisdf.structure import Structure
 from aisdf.synthetic import SyntheticSequence
-from aisdf_frontend.keyframes import KeyframeSelector
+from aisdf.keyframes import KeyframeSelector
 
 
 def angle_deg(a, b):
@@ -51,7 +51,7 @@ def test_structure_uses_only_the_depth_the_mapper_trains_on():
     from atlanta_scene import atlanta_room, camera, trajectory
 
     from aisdf.geometry import transform, valid_depth
-    from aisdf.pipeline import MappingPipeline
+    from aisdf.mapper.single import MappingPipeline
 
     scene, K, H, W, max_depth = atlanta_room(0), camera(120), 120, 160, 2.5
     rng = np.random.default_rng(0)
@@ -89,6 +89,6 @@ def test_structure_uses_only_the_depth_the_mapper_trains_on():
         assert pipe.structure.max_depth == limit
         for i, d, T in frames:
             pipe.add_keyframe(Frame(i, float(i), d, K, T))
-        lo, hi = pipe._bounds
+        lo, hi = pipe.intake.bounds
         overshoot[limit] = float(np.max(np.r_[cams.min(0) - lo, hi - cams.max(0)]))
     assert overshoot[max_depth] <= reach + 1e-6 < overshoot[12.0]

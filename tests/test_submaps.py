@@ -1,4 +1,4 @@
-"""Submaps (issue 7): the grid and its C¹ blend, the submap pipeline (assignment, training
+"""Submaps: the grid and its C¹ blend, the submap pipeline (assignment, training
 only what is in view, publishing only what changed, checkpoints, several sensors), maps
 far from the origin, and no seams across submap boundaries on a trained map."""
 
@@ -13,7 +13,8 @@ from aisdf.mapping.frames import Frame
 from aisdf.metrics import eval_points
 from aisdf.submaps.field import blend
 from aisdf.submaps.grid import SubmapGrid, cell_id, parse_cell_id
-from aisdf.submaps.pipeline import SubmapConfig, SubmapPipeline, restore_pipeline
+from aisdf.mapper.factory import restore_mapper
+from aisdf.submaps.pipeline import SubmapConfig, SubmapPipeline
 from aisdf.synthetic import SyntheticSequence
 
 R = Rotation.from_euler("xyz", [0.3, -0.2, 1.0]).as_matrix()
@@ -260,8 +261,8 @@ def test_background_refinement_is_published_in_batches_and_in_view_submaps_at_on
     # a resumed pipeline keeps what waits
     target.trainer.step()
     p.map_messages(11)
-    q = restore_pipeline(p.checkpoint())
-    assert q.submaps[target.cell].dirty_since == target.dirty_since == 11 and q._publications == 11
+    q = restore_mapper(p.checkpoint())
+    assert q.submaps[target.cell].dirty_since == target.dirty_since == 11 and q.publisher.publications == 11
 
 
 def test_checkpoint_restores_every_submap_and_continues_identically():
@@ -272,7 +273,7 @@ def test_checkpoint_restores_every_submap_and_continues_identically():
     for _ in range(15):
         p.step()
     ck = p.checkpoint()
-    q = restore_pipeline(ck)
+    q = restore_mapper(ck)
     assert isinstance(q, SubmapPipeline) and set(q.submaps) == set(p.submaps) and q.n_keyframes == p.n_keyframes
     assert np.array_equal(q.measured.keys, p.measured.keys) and np.array_equal(q.measured.counts, p.measured.counts)
     pts = np.random.default_rng(1).uniform(-3, 3, (500, 3)) + frames[5].T_WC[:3, 3]

@@ -11,7 +11,7 @@ import torch
 from aisdf.mapping.bounds import batch_bounds, tighten_bounds
 from aisdf.mapping.frames import Frame
 from aisdf.mapping.sampling import FREE, sample_batch
-from aisdf.pipeline import MappingPipeline
+from aisdf.mapper.single import MappingPipeline
 from aisdf.submaps.pipeline import SubmapPipeline
 from aisdf.synthetic import SyntheticSequence
 

@@ -9,17 +9,7 @@ from typing import Literal
 from pydantic import Field
 
 from aisdf.config import Model, ServiceConfig
-
-
-class KeyframeConfig(Model):
-    """Keyframe selection by motion and overlap (a frame is a keyframe when any test fires)."""
-
-    translation_m: float = Field(0.3, gt=0, description="camera moved this far since the last keyframe")
-    rotation_deg: float = Field(20.0, gt=0, description="camera turned this much since the last keyframe")
-    min_overlap: float = Field(0.7, ge=0, le=1, description="share of the frame's points the last keyframe saw")
-    max_interval_s: float = Field(5.0, gt=0, description="a keyframe at least this often (iSDF forces one every 5 s)")
-    overlap_stride: int = Field(4, ge=1, description="pixel stride of the overlap test")
-    all_frames: bool = Field(False, description="send every frame as a keyframe")
+from aisdf.keyframes import KeyframeConfig
 
 
 def _ros_domain_id() -> int:

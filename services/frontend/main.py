@@ -13,14 +13,13 @@ import threading
 import time
 import uuid
 
-import numpy as np
 import zenoh
 
 from aisdf import keys, protocol, transport
 from aisdf.config import add_common_args, config_from_args, service_setup
+from aisdf.keyframes import KeyframeSelector, keyframe_message
 
 from .config import FrontendConfig
-from .keyframes import KeyframeSelector
 from .outbox import KeyframeOutbox
 from .sources import list_source, open_source
 
@@ -28,13 +27,7 @@ log = logging.getLogger("aisdf.frontend")
 
 
 def to_keyframe(frame: dict, cfg: FrontendConfig) -> protocol.Keyframe:
-    depth = np.asarray(frame["depth"], dtype=np.float32)
-    scale = None
-    if cfg.depth_encoding == "u2":
-        depth = np.clip(np.round(np.nan_to_num(depth) * 1000.0), 0, 65535).astype(np.uint16)
-        scale = 1000.0
-    return protocol.Keyframe(int(frame["frame_id"]), float(frame["stamp"]), depth, np.asarray(frame["K"], np.float64),
-                             np.asarray(frame["T_WC"], np.float64), scale, cfg.sensor)
+    return keyframe_message(frame, cfg.sensor, cfg.depth_encoding)
 
 
 INFO_KEY = "info/frontend"

@@ -5,7 +5,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any, Literal
 
-from pydantic import Field
+from pydantic import Field, model_validator
 
 from aisdf.config import ServiceConfig
 from aisdf.submaps.config import SubmapConfig
@@ -24,8 +24,9 @@ class MapperConfig(ServiceConfig):
     surfel_loss: bool = Field(True, description="Table II switch: the surfel loss on surfel points")
     surfel_bounds: bool = Field(True, description="beyond the paper: the global surfel map also bounds the "
                                 "training samples' distances (training.surfel_bounds; docs/scaling-notes.md, Surfel bounds)")
-    submaps: bool = Field(True, description="one network per submap (protocol 1.3: map/submaps/<id> and map/index, "
-                          "only what changed each period); false = one network for the whole map (map/weights)")
+    mapper: Literal["submaps", "single"] = Field(
+        "submaps", description="submaps: one network per submap (protocol 1.3: map/submaps/<id> and map/index, only "
+        "what changed each period); single: one network for the whole map (map/weights)")
     submap: SubmapConfig = Field(default_factory=SubmapConfig, description="submap cells and step sharing")
     measured: bool = Field(True, description="pool the keyframes' depth pixels into 10 cm voxels and publish the "
                            "points with the map, for the query service's fused answers (protocol 1.4 with submaps, "
@@ -37,3 +38,16 @@ class MapperConfig(ServiceConfig):
     checkpoint_period_s: float = Field(30.0, gt=0, description="how often the checkpoint is written")
     torch_threads: int | None = Field(None, ge=1, description="torch CPU threads; None keeps torch's default")
     idle_sleep_s: float = Field(0.05, gt=0, description="sleep when there is nothing to train on")
+
+    @model_validator(mode="before")
+    @classmethod
+    def _submaps_switch(cls, data: Any) -> Any:
+        """Configuration files written before ``mapper`` said ``submaps: true | false``; it
+        still reads (``submaps: false`` is ``mapper: single``)."""
+        if isinstance(data, dict) and "submaps" in data:
+            data = dict(data)
+            flag = data.pop("submaps")
+            if isinstance(flag, str):
+                flag = flag.strip().lower() in ("1", "true", "yes", "on")
+            data.setdefault("mapper", "submaps" if flag else "single")
+        return data

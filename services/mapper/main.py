@@ -1,4 +1,6 @@
 """``aisdf-mapper``: trains the SDF continually on incoming keyframes and publishes the map.
+Zenoh wiring of an :class:`aisdf.mapper.Mapper` (``mapper: submaps`` or ``single``, made by
+``aisdf.mapper.factory``), which it uses only through that interface.
 
 * ``keyframes`` (subscribed): every keyframe is validated on arrival; a bad one is
   rejected with a log line and counted, and the map is untouched. Accepted keyframes
@@ -37,8 +39,8 @@ import zenoh
 
 from aisdf import keys, protocol, transport
 from aisdf.config import add_common_args, config_from_args, service_setup
-from aisdf.pipeline import MappingPipeline
-from aisdf.submaps.pipeline import SubmapPipeline, restore_pipeline
+from aisdf.mapper import Mapper
+from aisdf.mapper.factory import make_mapper, restore_mapper
 
 from .config import MapperConfig
 from .journal import Incarnation, KeyframeJournal
@@ -51,18 +53,13 @@ INCARNATION_NAME = "mapper-incarnation.json"
 
 
 class MapperNode:
-    def __init__(self, cfg: MapperConfig, session, pipeline: MappingPipeline | SubmapPipeline | None = None):
+    def __init__(self, cfg: MapperConfig, session, pipeline: Mapper | None = None):
         self.cfg = cfg
         self.session = session
         self.ns = cfg.namespace
-        if pipeline is None and cfg.submaps:
-            sub = cfg.submap.model_copy(update={"measured": cfg.submap.measured and cfg.measured})
-            pipeline = SubmapPipeline.from_settings(cfg.preset, cfg.training, atlanta=cfg.atlanta,
-                                                    surfel_mask=cfg.surfel_mask, surfel_loss=cfg.surfel_loss,
-                                                    surfel_bounds=cfg.surfel_bounds, submaps=sub)
-        self.pipeline = pipeline or MappingPipeline.from_settings(
-            cfg.preset, cfg.training, atlanta=cfg.atlanta, surfel_mask=cfg.surfel_mask, surfel_loss=cfg.surfel_loss,
-            surfel_bounds=cfg.surfel_bounds, measured=cfg.measured)
+        self.pipeline = pipeline or make_mapper(
+            cfg.mapper, cfg.preset, cfg.training, atlanta=cfg.atlanta, surfel_mask=cfg.surfel_mask,
+            surfel_loss=cfg.surfel_loss, surfel_bounds=cfg.surfel_bounds, measured=cfg.measured, submaps=cfg.submap)
         self.pending: collections.deque = collections.deque()
         self.lock = threading.Lock()
         self.counts = {"received": 0, "rejected": 0, "dropped": 0, "accepted": 0, "duplicates": 0}
@@ -91,13 +88,13 @@ class MapperNode:
         last_epoch = 0
         if path is not None and path.exists():
             ck = torch.load(path, map_location="cpu", weights_only=False)
-            self.pipeline = restore_pipeline(ck["pipeline"])
+            self.pipeline = restore_mapper(ck["pipeline"])
             self.version = int(ck["version"])
             last_epoch = int(ck.get("epoch", 0))
             if "seen" in ck:
                 self.seen = {(str(s), int(i)) for s, i in ck["seen"]}
             else:
-                self._seen_ids = {int(f.frame_id) for f in self.pipeline.trainer.keyframes}  # single network only
+                self._seen_ids = {int(i) for _, i in self.pipeline.keyframe_keys()}
             log.info("resumed from %s: version %d, %d steps, %d keyframes", path, self.version, self.pipeline.steps,
                      self.pipeline.n_keyframes)
         if self.incarnation is not None:
@@ -235,7 +232,7 @@ class MapperNode:
         dirty = False
         while not self._stop.is_set():
             self._add_pending()
-            if self.pipeline.n_keyframes == 0:
+            if not self.pipeline.ready:
                 self._stop.wait(self.cfg.idle_sleep_s)
                 continue
             try:
@@ -348,18 +345,18 @@ def cli(argv: list[str] | None = None) -> None:
         prog="aisdf-mapper",
         description="AiSDF mapper: subscribes to <namespace>/keyframes, trains the neural SDF continually with "
         "Atlanta-aware sampling (one network per submap by default), publishes <namespace>/map/submaps/<id>, "
-        "<namespace>/map/index and <namespace>/map/surfels (or <namespace>/map/weights with --single-network).",
+        "<namespace>/map/index and <namespace>/map/surfels (or <namespace>/map/weights with --mapper single).",
     )
     add_common_args(p)
     p.add_argument("--preset", choices=["auto", "paper", "cpu"], help="training preset (default auto)")
     p.add_argument("--no-atlanta", action="store_true", help="plain iSDF: no Atlanta frame, surfels or surfel map")
     p.add_argument("--checkpoint-dir", help="checkpoint the map here and resume from it")
-    p.add_argument("--submaps", action=argparse.BooleanOptionalAction, default=None,
-                   help="one network per submap (protocol 1.3), or --no-submaps: one network (map/weights)")
+    p.add_argument("--mapper", choices=["submaps", "single"],
+                   help="submaps: one network per submap (protocol 1.3; the default); single: one network (map/weights)")
     args = p.parse_args(argv)
     cfg = config_from_args(MapperConfig, args, {"preset": args.preset, "checkpoint_dir": args.checkpoint_dir,
                                                 "atlanta": False if args.no_atlanta else None,
-                                                "submaps": args.submaps})
+                                                "mapper": args.mapper})
     stop = service_setup(cfg, "mapper")
     main(cfg, stop)
 

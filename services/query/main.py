@@ -6,7 +6,8 @@ checked on Zenoh's thread (a malformed one is answered at once) and evaluated on
 ``workers`` threads; a bad request never stops the service. The sdf queue is bounded
 (``queue_max``): a request that finds it full is answered at once with ``busy``, so
 under overload latency stays bounded and planners hear about it instead of timing out.
-A background thread bakes every new map (``engine.py``).
+A background thread bakes every new map. The answers come from :class:`aisdf.query.engine.QueryEngine`
+(the engine, its baker and the served answer live in ``aisdf.query``); this module is its wiring.
 
 Submaps (protocol 1.3): it also follows ``map/submaps/*`` (one WeightSnapshot per changed
 submap) and ``map/index``. A late joiner gets ``map/submaps/**`` (every submap's latest)
@@ -26,11 +27,11 @@ import uuid
 
 import torch
 
-from aisdf import keys, protocol, transport
+from aisdf import keys, protocol, query_messages, transport
 from aisdf.config import add_common_args, config_from_args, service_setup
+from aisdf.query.engine import QueryEngine
 
 from .config import QueryConfig
-from .engine import QueryEngine
 
 log = logging.getLogger("aisdf.query")
 INFO_KEY = "info/query"
@@ -210,7 +211,7 @@ class QueryNode:
 
     def _answer(self, q, req) -> None:
         try:
-            if isinstance(req, protocol.SdfRequest):
+            if isinstance(req, query_messages.SdfRequest):
                 rep = self.engine.answer_sdf(req)
             else:
                 rep = self.engine.answer_mesh(req)
@@ -233,10 +234,10 @@ class QueryNode:
             self._subscriber(keys.MAP_INDEX, self._on_index),
             self.session.declare_queryable(
                 keys.key(self.ns, keys.QUERY_SDF),
-                lambda q: self._accept(q, lambda m: protocol.SdfRequest.from_msg(m, max_pts), self._sdf_jobs)),
+                lambda q: self._accept(q, lambda m: query_messages.SdfRequest.from_msg(m, max_pts), self._sdf_jobs)),
             self.session.declare_queryable(
                 keys.key(self.ns, keys.QUERY_MESH),
-                lambda q: self._accept(q, protocol.MeshRequest.from_msg, self._mesh_jobs)),
+                lambda q: self._accept(q, query_messages.MeshRequest.from_msg, self._mesh_jobs)),
             transport.serve(self.session, keys.key(self.ns, INFO_KEY), lambda _req: self.info(), allow_empty=True),
             self.session.liveliness().declare_token(keys.status_key(self.ns, "query", uuid.uuid4().hex[:8])),
         ]

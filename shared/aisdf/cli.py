@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import importlib
 import logging
 
 from . import __version__
@@ -43,8 +44,17 @@ def _bench(args) -> None:
     suite_main(args)
 
 
+# Benchmarks with their own options: name, module (with main(argv)), what it measures.
+TOOLS = [
+    ("bake", "aisdf.bench.bake", "the query service's incremental bake against a full bake as a submap map grows"),
+    ("rosbag", "aisdf.bench.rosbag", "7-Scenes frames mapped from .mcap, .db3 and ROS 1 recordings against the folder"),
+    ("ros2-live", "aisdf.bench.ros2_live", "the live ROS 2 source against the protocol-v1 frontend, real processes"),
+    ("device", "aisdf.bench.device", "the query engine and both mappers on a GPU against the CPU"),
+]
+
+
 def main(argv: list[str] | None = None) -> None:
-    from .bench.query_map import MAPPERS  # (numpy and the protocol; the heavy imports stay in the commands)
+    from .mapper import MAPPER_KINDS
 
     p = argparse.ArgumentParser(prog="aisdf", description="AiSDF: online Atlanta-world neural SDF mapping service.")
     p.add_argument("--version", action="version", version=f"%(prog)s {__version__}")
@@ -95,7 +105,7 @@ def main(argv: list[str] | None = None) -> None:
     q.add_argument("--threads", type=int, help="torch threads per evaluation, in the service and in-process "
                    "(default 1, the service's)")
     q.add_argument("--bake-threads", type=int, default=2, help="threads evaluating the network while baking")
-    q.add_argument("--mapper", choices=list(MAPPERS), default="submaps",
+    q.add_argument("--mapper", choices=list(MAPPER_KINDS), default="submaps",
                    help="the map's mapper: a network per submap with measured points (the service's default; "
                    "fused answers are protocol 1.4's) or one network (with its measured points too, protocol 1.5)")
     q.add_argument("--train-steps", type=int, help="training steps of the demo map (default 1200 with submaps, "
@@ -106,16 +116,21 @@ def main(argv: list[str] | None = None) -> None:
     q.add_argument("--eval-points", type=int, default=200_000)
     q.add_argument("--out", default="runs/bench-query", help="results and the cached map (default runs/bench-query)")
     q.set_defaults(fn=_bench_query)
-    sc = bsub.add_parser("scaling", help="one room to a floor: single network vs submaps (issue 7's table)",
+    sc = bsub.add_parser("scaling", help="one room to a floor: one network vs submaps",
                          description="Walks the office and the floor at one keyframe a second of wall time (frames "
-                         "rendered up front, the mapper stepping in between), then trains 60 s more; per method: "
+                         "rendered up front, the mapper stepping in between), then trains 60 s more; per mapper: "
                          "step time, mapper memory, bytes published per second, whole-map SDF error at the end of "
                          "the walk and 60 s later, each floor room's error just after its visit and at the end, "
-                         "and the issue's criteria. Prints the tables; writes scaling.json and scaling.md.")
+                         "and the scaling criteria. Prints the tables; writes scaling.json and scaling.md.")
     from .bench.scaling import add_arguments as _scaling_arguments
 
     _scaling_arguments(sc)
     sc.set_defaults(fn=_bench_scaling)
+    for name, module, text in TOOLS:
+        t = bsub.add_parser(name, help=text, add_help=False, prefix_chars="+",
+                            description=f"{text} (`aisdf bench {name} --help`: its options)")
+        t.add_argument("argv", nargs=argparse.REMAINDER)
+        t.set_defaults(fn=lambda a, module=module: importlib.import_module(module).main(a.argv))
     b.set_defaults(fn=_bench)
 
     args = p.parse_args(argv)

@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from . import keys, protocol, transport
+from . import keys, protocol, query_messages, transport
 from .config import ZenohOptions
 from .structure.surfel_types import Surfels
 
@@ -64,7 +64,7 @@ class SdfClient:
         observed: bool = False,
         exact: bool = False,
         unknown: bool = False,
-    ) -> protocol.SdfReply:
+    ) -> query_messages.SdfReply:
         """Signed distances (and optionally gradients and CHOMP costs) of (N, 3) points.
 
         ``radii`` (N,): the points are sphere centres and distances (and costs) are those of
@@ -89,15 +89,15 @@ class SdfClient:
         step = self.max_batch or max(len(pts), 1)
         parts = []
         for i in range(0, max(len(pts), 1), step):
-            req = protocol.SdfRequest(pts[i:i + step], gradient, collision_epsilon, source,
+            req = query_messages.SdfRequest(pts[i:i + step], gradient, collision_epsilon, source,
                                       None if radii is None else radii[i:i + step], observed, exact, unknown)
-            parts.append(protocol.SdfReply.from_msg(transport.query(self._session, self._key(keys.QUERY_SDF),
+            parts.append(query_messages.SdfReply.from_msg(transport.query(self._session, self._key(keys.QUERY_SDF),
                                                                     req.to_msg(), self.timeout)))
         if len(parts) == 1:
             return parts[0]
         cat = lambda name: None if getattr(parts[0], name) is None else np.concatenate([getattr(p, name) for p in parts])  # noqa: E731
         first = min(parts, key=lambda p: (p.map_epoch, p.map_version))
-        return protocol.SdfReply(first.map_version, cat("sdf"), cat("gradient"), cat("collision"), cat("observed"),
+        return query_messages.SdfReply(first.map_version, cat("sdf"), cat("gradient"), cat("collision"), cat("observed"),
                                  all(p.baked for p in parts), first.map_epoch, cat("unknown"))
 
     def sdf(self, points_W: np.ndarray, source: str = "fused") -> np.ndarray:
@@ -106,10 +106,10 @@ class SdfClient:
     def collision_cost(self, points_W: np.ndarray, epsilon: float) -> np.ndarray:
         return self.query(points_W, collision_epsilon=epsilon).collision
 
-    def mesh(self, resolution: float | None = None, timeout: float = 60.0) -> protocol.MeshReply:
-        msg = transport.query(self._session, self._key(keys.QUERY_MESH), protocol.MeshRequest(resolution).to_msg(),
+    def mesh(self, resolution: float | None = None, timeout: float = 60.0) -> query_messages.MeshReply:
+        msg = transport.query(self._session, self._key(keys.QUERY_MESH), query_messages.MeshRequest(resolution).to_msg(),
                               timeout)
-        return protocol.MeshReply.from_msg(msg)
+        return query_messages.MeshReply.from_msg(msg)
 
     def surfel_map(self, timeout: float = 2.0) -> protocol.SurfelMap | None:
         """Latest explicit planar map (None if no mapper answers)."""

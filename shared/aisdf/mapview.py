@@ -24,7 +24,7 @@ from collections import defaultdict
 
 import numpy as np
 
-from . import protocol
+from . import protocol, query_messages
 
 log = logging.getLogger("aisdf.viewer")
 
@@ -186,7 +186,7 @@ class MapView:
         self._scalar("submaps", len(idx.submaps))
         return True
 
-    def mesh(self, m: protocol.MeshReply) -> None:
+    def mesh(self, m: query_messages.MeshReply) -> None:
         self._time()
         if len(m.vertices) and len(m.faces):
             self.rec.log("world/mesh", self.rr.Mesh3D(vertex_positions=m.vertices, triangle_indices=m.faces,

@@ -27,7 +27,7 @@ from pathlib import Path
 
 from pydantic import Field
 
-from . import keys, protocol, transport
+from . import keys, protocol, query_messages, transport
 from .config import ServiceConfig, add_common_args, config_from_args, service_setup
 from .mapview import MapView, blueprint, import_rerun
 
@@ -149,7 +149,7 @@ class LiveViewer:
 
     def _meshes(self) -> None:
         key = keys.key(self.ns, keys.QUERY_MESH)
-        request = protocol.MeshRequest(self.mesh_resolution).to_msg()
+        request = query_messages.MeshRequest(self.mesh_resolution).to_msg()
         while not self._stop.is_set():
             t = time.monotonic()
             asked = False
@@ -157,7 +157,7 @@ class LiveViewer:
             if v.counts["meshes"] == 0 or v.map_key is None or v.map_key[1] != v.counts["mesh_version"]:
                 asked = True
                 try:
-                    reply = protocol.MeshReply.from_msg(transport.query(self.session, key, request,
+                    reply = query_messages.MeshReply.from_msg(transport.query(self.session, key, request,
                                                                         self.mesh_timeout_s))
                     v.mesh(reply)
                     log.info("mesh of map v%d: %d vertices, %d faces", reply.map_version, len(reply.vertices),

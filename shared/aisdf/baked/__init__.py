@@ -42,8 +42,8 @@ smoothstep), so the whole field is C^1 across level borders too:
 Points outside every baked block are reported as not covered; the caller answers them
 another way (the query service: the network).
 
-Re-baking what changed (submaps, issue 7)
------------------------------------------
+Re-baking what changed (submaps)
+--------------------------------
 ``bake(..., previous=old, dirty=fn)`` bakes a new field reusing the samples of an older
 bake on the same lattice (same block and fine spacing, origins a whole number of blocks
 apart) wherever ``dirty(points)`` says the field cannot have changed: coarse corners,

@@ -9,7 +9,7 @@ Two modes (``run_stream``):
 
 * ``iterations`` (the paper's): every model sees every frame. The voxel map integrates
   every frame, as Voxblox does; a network gets the frames the service's keyframe
-  selector (``aisdf_frontend.keyframes``) picks, each followed by iSDF's schedule
+  selector (``aisdf.keyframes``) picks, each followed by iSDF's schedule
   (200 steps after the first keyframe, 60 after each later one, times the profile's
   ``schedule_scale``).
 * ``realtime`` (iSDF's replay): each model has its own compute clock; the frame it gets
@@ -155,15 +155,14 @@ class VoxelRunner(Runner):
 
 
 class NeuralRunner(Runner):
-    """``aisdf.pipeline.MappingPipeline`` with the service's keyframe selector in front."""
+    """``aisdf.mapper.single.MappingPipeline`` with the service's keyframe selector in front."""
 
     TRAINER_KEYS = ("sampling", "bound", "forward", "backward", "total")
 
     def __init__(self, name, clock, spec: ModelSpec, preset: str, training: dict, keyframes: dict | None = None):
-        from aisdf_frontend.config import KeyframeConfig
-        from aisdf_frontend.keyframes import KeyframeSelector
+        from ..keyframes import KeyframeConfig, KeyframeSelector
 
-        from ..pipeline import MappingPipeline
+        from ..mapper.single import MappingPipeline
 
         super().__init__(name, clock)
         self.spec = spec

@@ -34,7 +34,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from .. import keys, protocol, transport
+from .. import keys, protocol, query_messages, transport
 from ..client import SdfClient
 from ..stack import Stack, wait_for
 from .query_map import demo_map, engine_of, versioned
@@ -135,8 +135,8 @@ def run(out: str | Path = "runs/bench-query", sizes=(1_000, 10_000, 100_000), re
     pts = eval_points_from(seq, len(seq), n_eval, rng)
     gt = seq.gt_sdf(pts)
     gt_grad = _gt_gradient(seq, pts)
-    b = eng.answer_sdf(protocol.SdfRequest(pts, gradient=True))
-    n = eng.answer_sdf(protocol.SdfRequest(pts, gradient=True, exact=True))
+    b = eng.answer_sdf(query_messages.SdfRequest(pts, gradient=True))
+    n = eng.answer_sdf(query_messages.SdfRequest(pts, gradient=True, exact=True))
     assert b.baked and not n.baked
     d = np.abs(b.sdf - n.sdf)
     valid = np.linalg.norm(gt_grad, axis=1) > 0.5
@@ -196,7 +196,7 @@ def run(out: str | Path = "runs/bench-query", sizes=(1_000, 10_000, 100_000), re
                     # 1.6: baked answers with each point's distance to unknown space
                     for name, exact, unknown in (("baked", False, False), ("network", True, False),
                                                  ("baked + unknown", False, True)):
-                        req = protocol.SdfRequest(q, grad, exact=exact, unknown=unknown)
+                        req = query_messages.SdfRequest(q, grad, exact=exact, unknown=unknown)
                         t_in = _time(lambda: eng.answer_sdf(req), reps if not exact else max(3, reps // 2))
                         t_z = _time(lambda: client.query(q, gradient=grad, exact=exact, unknown=unknown),
                                     reps if not exact else max(3, reps // 2))

@@ -10,8 +10,8 @@ from pathlib import Path
 import numpy as np
 
 from .. import keys, protocol
+from ..mapper import MAPPER_KINDS
 
-MAPPERS = ("submaps", "single")
 # Bumped when what a cached map holds changes: 2 = the one-network map's snapshot carries its
 # measured points (protocol 1.5); an older cache is trained again.
 CACHE_FORMAT = 2
@@ -22,15 +22,12 @@ def demo_map(out: Path, train_steps: int | None = None, seed: int = 0, duration:
              mapper: str = "submaps") -> dict:
     """Train (or load from ``out/map-<mapper>.msgpack``) the demo building's map as the demo
     makes it: ``messages``, what the mapper publishes for it ((key, message) pairs)."""
-    from aisdf_frontend.config import KeyframeConfig
-    from aisdf_frontend.keyframes import KeyframeSelector
-
-    from ..pipeline import MappingPipeline
-    from ..submaps.pipeline import SubmapPipeline
+    from ..keyframes import KeyframeConfig, KeyframeSelector
+    from ..mapper.factory import make_mapper
     from ..synthetic import SyntheticSequence
 
-    if mapper not in MAPPERS:
-        raise ValueError(f"mapper must be one of {MAPPERS}, not {mapper!r}")
+    if mapper not in MAPPER_KINDS:
+        raise ValueError(f"mapper must be one of {MAPPER_KINDS}, not {mapper!r}")
     train_steps = train_steps or DEFAULT_STEPS[mapper]
     path = out / f"map-{mapper}.msgpack"
     fps = 30.0
@@ -48,7 +45,7 @@ def demo_map(out: Path, train_steps: int | None = None, seed: int = 0, duration:
         f = seq.frame(i)
         if sel.is_keyframe(f["stamp"], f["depth"], f["K"], f["T_WC"]):
             kfs.append(i)
-    pipe = (SubmapPipeline if mapper == "submaps" else MappingPipeline).from_settings("cpu")
+    pipe = make_mapper(mapper, "cpu")
     per = max(1, train_steps // max(1, len(kfs)))
     for j, i in enumerate(kfs):
         f = seq.frame(i)
@@ -57,7 +54,7 @@ def demo_map(out: Path, train_steps: int | None = None, seed: int = 0, duration:
         # per steps a keyframe, the rest after the last; a submap mapper steps once its grid
         # exists (a few keyframes in: it waits for the Atlanta frame), catching up then.
         target = per * (j + 1) if j < len(kfs) - 1 else train_steps
-        while pipe.steps < target and (mapper == "single" or pipe.submaps):
+        while pipe.steps < target and pipe.ready:
             pipe.step()
         if not quiet and (j % 20 == 0 or j == len(kfs) - 1):
             print(f"  training the demo map: keyframe {j + 1}/{len(kfs)}, step {pipe.steps}/{train_steps}, "
@@ -67,7 +64,7 @@ def demo_map(out: Path, train_steps: int | None = None, seed: int = 0, duration:
     else:
         messages = [(keys.MAP_WEIGHTS, pipe.weight_snapshot(1).to_msg()), (keys.MAP_SURFELS, pipe.surfel_map(1).to_msg())]
     m = {"cache_format": CACHE_FORMAT, "mapper": mapper, "train_steps": train_steps, "steps": pipe.steps, "n_frames": n_frames, "keyframes": len(kfs),
-         "messages": messages, "describe": pipe.describe() if hasattr(pipe, "describe") else "one network"}
+         "messages": messages, "describe": pipe.describe()}
     out.mkdir(parents=True, exist_ok=True)
     path.write_bytes(protocol.pack(m))
     return {"seq": seq, **m}
@@ -87,7 +84,7 @@ def versioned(messages, version: int) -> list[tuple[str, dict]]:
 
 def engine_of(m: dict, bake_threads: int = 2):
     """An in-process query engine holding the map ``m`` (``demo_map``'s)."""
-    from aisdf_query.engine import QueryEngine
+    from ..query.engine import QueryEngine
 
     e = QueryEngine(device="auto", bake_threads=bake_threads)
     for key, msg in m["messages"]:

@@ -15,14 +15,15 @@ from __future__ import annotations
 import json
 import time
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from collections.abc import Callable
+from typing import Any
 
 import numpy as np
 
+from .scaling_config import ScalingConfig
+from .scaling_report import criteria, report
 from .scaling_walk import room_ratio
 
-if TYPE_CHECKING:
-    from .scaling import ScalingConfig
 
 # Per-walk detail that has no meaningful mean (kept in each seed's own record).
 _NOT_AVERAGED = {"periods"}
@@ -58,10 +59,8 @@ def mean_runs(per_seed: list[dict]) -> dict:
     return out
 
 
-def run_seeds(cfg: ScalingConfig) -> dict:
-    """``scaling.run`` once per seed (``cfg.seed``, ``cfg.seed + 1``, ...), then the mean record."""
-    from .scaling import criteria, report, run
-
+def run_seeds(cfg: ScalingConfig, run: Callable[[ScalingConfig], dict]) -> dict:
+    """``run`` (``scaling.run``) once per seed (``cfg.seed``, ``cfg.seed + 1``, ...), then the mean record."""
     out = Path(cfg.out)
     out.mkdir(parents=True, exist_ok=True)
     seeds = [cfg.seed + i for i in range(cfg.seeds)]
@@ -72,7 +71,7 @@ def run_seeds(cfg: ScalingConfig) -> dict:
             print(f"seed {s} ({i + 1} of {len(seeds)})", flush=True)
         per_seed.append(run(cfg.model_copy(update={"seed": s, "seeds": 1, "out": str(out / f"seed-{s}")})))
     res: dict[str, Any] = {
-        "config": cfg.model_dump(mode="json"), "scenes": per_seed[0]["scenes"], "methods": per_seed[0]["methods"],
+        "config": cfg.model_dump(mode="json"), "scenes": per_seed[0]["scenes"], "mappers": per_seed[0]["mappers"],
         "machine": per_seed[0]["machine"], "seeds": seeds, "runs": mean_runs(per_seed),
         "unavailable": {k: v for r in per_seed for k, v in r.get("unavailable", {}).items()},
         "scene_info": per_seed[0]["scene_info"],
@@ -86,30 +85,3 @@ def run_seeds(cfg: ScalingConfig) -> dict:
     (out / "scaling.json").write_text(json.dumps(res, indent=1))
     (out / "scaling.md").write_text(report(res) + "\n")
     return res
-
-
-def seeds_report(res: dict, labels: dict[str, str]) -> list[str]:
-    """Lines for the report: each seed's errors and how many seeds pass each criterion."""
-    seeds = [p["seed"] for p in res["per_seed"]]
-    tail = f"+{res['config']['tail_s']:g} s"
-    lines = ["", f"Each seed (the tables above are the means over seeds {', '.join(map(str, seeds))}; "
-                 f"errors at the end of the walk / {tail}, cm):", "",
-             "| | " + " | ".join(f"seed {s}" for s in seeds) + " |", "|---|" + "---:|" * len(seeds)]
-    for m, by in res["runs"].items():
-        for sc in by:
-            cells = []
-            for p in res["per_seed"]:
-                e = p["errors_cm"].get(m, {}).get(sc)
-                cells.append(f"{e['walk_end']:.2f} / {e['end']:.2f}" if e else "-")
-            lines.append(f"| {sc}: {labels[m]} | " + " | ".join(cells) + " |")
-    lines += ["", "| criterion, seeds passing | " + " | ".join(labels[m] for m in res["criteria"]) + " |",
-              "|---|" + "---|" * len(res["criteria"])]
-    names = list(dict.fromkeys(c for m in res["criteria"] for c in res["criteria"][m]))
-    for c in names:
-        cells = []
-        for m in res["criteria"]:
-            oks = [p["criteria"].get(m, {}).get(c, {}).get("ok") for p in res["per_seed"]]
-            judged = [o for o in oks if o is not None]
-            cells.append(f"{sum(judged)} of {len(judged)}" if judged else "-")
-        lines.append(f"| {c} | " + " | ".join(cells) + " |")
-    return lines

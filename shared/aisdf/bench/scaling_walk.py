@@ -16,7 +16,7 @@ import numpy as np
 from ..structure.measured import MeasuredPoints, MeasuredSurface
 
 if TYPE_CHECKING:
-    from .scaling import ScalingConfig
+    from .scaling_config import ScalingConfig
 
 log = logging.getLogger("aisdf.bench.scaling")
 
@@ -88,20 +88,18 @@ class _Scorer:
     def _answers(self, pipe, measured=None) -> tuple[dict[str, np.ndarray], np.ndarray | None]:
         """The answers, and the distance to the nearest observed surface (surfel or measured
         point; None without ``measured``)."""
-        from ..structure.fusion import fuse
-        from ..structure.measured import measured_fuse
+        from ..query.answer import served_answer
         from ..structure.surfel_map import explicit_sdf
 
         f = np.asarray(pipe.sdf(self.points), dtype=np.float64)
-        s = pipe.surfels() if hasattr(pipe, "surfels") else None
-        # fusion.fused_sdf, with the surfel distance kept for the measured answer
-        d_e = explicit_sdf(self.points, s)[0] if s is not None and len(s) else np.full(len(f), np.inf)
-        out = {"implicit": f, "fused": np.asarray(fuse(f, None, d_e, None)[0], dtype=np.float64)}
+        s = pipe.surfels()
+        d_e = explicit_sdf(self.points, s)[0] if s is not None and len(s) else None
+        out = {"implicit": f, "fused": np.asarray(served_answer(self.points, f, None, d_e, None, None)[0], np.float64)}
         observed = None
         if measured is not None:
+            out["measured"] = np.asarray(served_answer(self.points, f, None, d_e, None, measured)[0], np.float64)
             d_m = measured.distance(self.points)
-            out["measured"] = measured_fuse(out["fused"], f, d_e, d_m)
-            observed = np.minimum(np.abs(d_e), d_m)
+            observed = np.minimum(np.inf if d_e is None else np.abs(d_e), d_m)
         out["served"] = out["measured"] if serves_measured(pipe) and measured is not None else out["fused"]
         grid = _observed_grid(pipe)
         if grid is not None:  # protocol 1.6: a planner that treats unknown space as occupied
@@ -147,7 +145,7 @@ def _observed_grid(pipe):
 
 def serves_measured(pipe) -> bool:
     """Does this mapper publish measured points (by default: protocol 1.4 with submaps, 1.5 with one network)?"""
-    return getattr(pipe, "measured", None) is not None and hasattr(pipe, "measured_points")
+    return pipe.measured is not None
 
 
 def measured_of(pipe, pooled: MeasuredSurface):

@@ -72,7 +72,7 @@ class Frame:
     @classmethod
     def from_dict(cls, d: dict) -> "Frame":
         """``to_dict``'s frame; one held as raw depth comes back with its metres decoded too
-        (as it arrived), so ``Keyframe.make`` stores it raw again."""
+        (as it arrived), so ``StoredFrame.make`` stores it raw again."""
         s = d.get("surfels")
         m = d.get("surfel_mask")
         raw, scale = d.get("depth_raw"), d.get("depth_scale")
@@ -94,7 +94,7 @@ def clean_depth(depth: np.ndarray, max_depth: float) -> np.ndarray:
 
 
 @dataclass
-class Keyframe:
+class StoredFrame:
     """A stored frame with what sampling needs: its cleaned depth (normals are computed at
     the sampled pixels, ``geometry.normals_at``) and its surfel mask as packed bits (the
     stored frame holds neither a copy of the depth nor a byte-per-pixel mask).
@@ -115,9 +115,9 @@ class Keyframe:
     surfel_bits: np.ndarray | None = None  # ``Frame.surfel_mask``, one bit a pixel (``surfel_mask``)
     scale: float | None = None  # raw depth's scale; None: ``raw`` is metres
 
-    def view(self, pixel_mask: np.ndarray | None, region) -> "Keyframe":
+    def view(self, pixel_mask: np.ndarray | None, region) -> "StoredFrame":
         """The same keyframe (arrays shared, not copied) for a submap's store."""
-        return Keyframe(self.frame, self.raw, None, _pack(pixel_mask), region, self.surfel_bits, self.scale)
+        return StoredFrame(self.frame, self.raw, None, _pack(pixel_mask), region, self.surfel_bits, self.scale)
 
     @property
     def depth(self) -> np.ndarray:
@@ -160,7 +160,7 @@ class Keyframe:
         return d
 
     @classmethod
-    def make(cls, frame: Frame, max_depth: float) -> "Keyframe":
+    def make(cls, frame: Frame, max_depth: float) -> "StoredFrame":
         """The keyframe of ``frame``: its depth cleaned (``clean_depth``). The
         stored frame is a copy of ``frame`` holding the cleaned depth (one array, not two:
         every reader of a keyframe's depth, checkpoints included, takes 0 as invalid and
@@ -199,7 +199,7 @@ class KeyframeStore:
         self.window_size = window_size
         self.max_keyframes = max_keyframes
         self.max_depth = max_depth
-        self.keyframes: list[Keyframe] = []
+        self.keyframes: list[StoredFrame] = []
         self.dropped = 0
 
     def __len__(self) -> int:
@@ -207,9 +207,9 @@ class KeyframeStore:
 
     def add(self, frame: Frame) -> list[int]:
         """Store a frame; returns the frame_ids dropped to respect ``max_keyframes``."""
-        return self.add_prepared(Keyframe.make(frame, self.max_depth))
+        return self.add_prepared(StoredFrame.make(frame, self.max_depth))
 
-    def add_prepared(self, kf: Keyframe) -> list[int]:
+    def add_prepared(self, kf: StoredFrame) -> list[int]:
         """Store a prepared keyframe (``add``'s, or a submap's view); returns the frame_ids
         dropped to respect ``max_keyframes`` (the lowest loss, never the newest two)."""
         self.keyframes.append(kf)
@@ -221,7 +221,7 @@ class KeyframeStore:
             self.dropped += 1
         return dropped
 
-    def _loss(self, kf: Keyframe) -> float:
+    def _loss(self, kf: StoredFrame) -> float:
         if kf.loss is not None:
             return kf.loss
         known = [k.loss for k in self.keyframes if k.loss is not None]

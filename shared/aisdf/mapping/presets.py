@@ -89,3 +89,14 @@ def submap_training_config(preset: str = "auto", **overrides: Any) -> TrainingCo
     """A submap's config: the preset, then ``SUBMAP_PRESETS``, then ``overrides``."""
     name = resolve_preset(preset)
     return training_config(name, **deep_merge(SUBMAP_PRESETS[name], overrides))
+
+
+def structure_overrides(training: dict[str, Any] | None, atlanta: bool, surfel_mask: bool = True,
+                        surfel_loss: bool = True, surfel_bounds: bool = True) -> dict[str, Any]:
+    """``training`` overrides with the Table II switches (and ``surfel_bounds``, beyond the
+    paper) set where not given; each only matters with ``atlanta`` on (both mappers)."""
+    overrides = dict(training or {})
+    overrides.setdefault("surfel_bounds", bool(atlanta and surfel_bounds))
+    overrides.setdefault("surfel_mask", bool(atlanta and surfel_mask))
+    overrides.setdefault("surfel_loss", bool(atlanta and surfel_loss))
+    return overrides

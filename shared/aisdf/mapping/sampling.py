@@ -7,7 +7,7 @@ Per frame: ``n_rays`` random valid pixels (with replacement), and per ray, in ca
 uniform draw in each of as many equal bins). With surfels in use (config
 ``uses_surfels``) a frame with surfels also gets ``samples_per_ray`` points uniform on
 each surfel rectangle; with ``surfel_mask`` its rays come only from non-surfel pixels
-(those not set in the frame's surfel mask, ``Keyframe.surfel_mask``; all valid pixels when
+(those not set in the frame's surfel mask, ``StoredFrame.surfel_mask``; all valid pixels when
 the frame has no mask),
 and with ``surfels_replace_rays`` (off by default, see config.py) it gets one ray fewer per surfel.
 """
@@ -20,7 +20,7 @@ import numpy as np
 
 from .. import geometry
 from .config import TrainingConfig
-from .frames import Keyframe
+from .frames import StoredFrame
 
 FREE, SURFACE, SURFEL = 0, 1, 2  # Batch.kind values
 
@@ -85,7 +85,7 @@ def ray_depths(
     return np.concatenate([D[:, None], zg, zs], axis=1)
 
 
-def sample_frame(kf: Keyframe, slot: int, cfg: TrainingConfig, rng: np.random.Generator) -> Batch:
+def sample_frame(kf: StoredFrame, slot: int, cfg: TrainingConfig, rng: np.random.Generator) -> Batch:
     """Ray samples (and surfel points) of one keyframe."""
     frame = kf.frame
     surfels = frame.surfels if (cfg.uses_surfels and frame.surfels is not None) else None
@@ -139,6 +139,6 @@ def _within(b: Batch, region, margin: float) -> Batch:
     return Batch(**{k: getattr(b, k)[keep] for k in Batch.__dataclass_fields__})
 
 
-def sample_batch(keyframes: list[Keyframe], cfg: TrainingConfig, rng: np.random.Generator) -> Batch:
+def sample_batch(keyframes: list[StoredFrame], cfg: TrainingConfig, rng: np.random.Generator) -> Batch:
     """Samples of every frame of the window; ``slot`` = position in ``keyframes``."""
     return Batch.concat([sample_frame(kf, i, cfg, rng) for i, kf in enumerate(keyframes)])

@@ -187,12 +187,24 @@ class Trainer:
         return {
             "format": CHECKPOINT_FORMAT, "version": CHECKPOINT_VERSION,
             "config": self.cfg.model_dump(mode="json"), "model": self.model_spec(), "state": self.state_numpy(),
-            "optimizer": _optimizer_to_numpy(self.optimizer.state_dict()),
+            "optimizer": self.optimizer_numpy(),
             "keyframes": [k.frame_dict() for k in self.store.keyframes],
             "losses": [k.loss for k in self.store.keyframes],
             "steps": self._steps, "dropped": self.store.dropped,
             "rng": json.dumps(self.rng.bit_generator.state), "lr_state": self.lr_state(),
         }
+
+    def optimizer_numpy(self) -> dict:
+        """The AdamW state as plain types and numpy arrays (for checkpoints)."""
+        return _optimizer_to_numpy(self.optimizer.state_dict())
+
+    def resume(self, optimizer: dict, steps: int, rng_state: dict, lr_state: list[int] | None) -> None:
+        """Continue where a checkpoint stopped: AdamW state (``optimizer_numpy``'s), step
+        count, the sampling generator's state and the learning-rate schedule's."""
+        self.optimizer.load_state_dict(_optimizer_from_numpy(optimizer))
+        self._steps = int(steps)
+        self.rng.bit_generator.state = rng_state
+        self.load_lr_state(lr_state)
 
     def lr_state(self) -> list[int]:
         return [*self._store_size, self._newest_step]

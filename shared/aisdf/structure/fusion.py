@@ -8,12 +8,7 @@ The paper takes the smaller of the two at every point. Here a surfel counts only
 near it (the query service's incremental bake re-evaluates only there). A surfel is a piece
 of observed surface, so the distance to it bounds the distance to the nearest surface
 however far it is: a larger radius only ever lowers an answer towards a surface that is
-there. Measured (2026-12-02, submap maps of ``aisdf bench scaling``'s walks, 200,000 points
-along seen rays, exact SDF): fused error at radius 0.5 / 1.0 / 1.5 / 2.0 m (and the paper's
-no radius): the floor 4.69 / 4.02 / 3.89 / 3.89 (3.89) cm, another floor run 5.48 / 4.51 /
-4.26 / 4.26 cm, the office 1.47 / 1.31 / 1.27 / 1.27 cm; the answers above the truth by
-more than 10 cm fell from 5.3 % to 3.7 % of the floor's points (the radius was 0.5 m before;
-no evaluation point of either building is farther than 2 m from a surfel)."""
+there (the radius was chosen by measurement: docs/experiments/fuse-radius.md)."""
 
 from __future__ import annotations
 

@@ -102,9 +102,14 @@ class MeasuredSurface:
 
     def distance(self, points: np.ndarray) -> np.ndarray:
         """(N,) distance from each point to the nearest measured point (inf when none)."""
+        return self.nearest(points)[0]
+
+    def nearest(self, points: np.ndarray, within: float | None = None,
+                workers: int = 1) -> tuple[np.ndarray, np.ndarray]:
+        """``MeasuredPoints.nearest`` over the pool's points."""
         if self._points is None:  # built once per change
             self._points = MeasuredPoints(self.points())
-        return self._points.distance(points)
+        return self._points.nearest(points, within, workers)
 
     def nbytes(self) -> int:
         return int(self.keys.nbytes + self.sums.nbytes + self.counts.nbytes)

@@ -1,4 +1,4 @@
-"""Submaps for whole buildings (issue 7): the grid that partitions space (``grid``), the
+"""Submaps for whole buildings: the grid that partitions space (``grid``), the
 blended field that answers from several submaps without seams (``field``) and the mapper's
 submap pipeline (``pipeline``)."""
 

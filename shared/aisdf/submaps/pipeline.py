@@ -12,7 +12,7 @@ or on every ``refine_every``-th step, the submap with the fewest steps per keyfr
 refinement step on its own keyframes. The cost of a step does not grow with the building.
 
 The Atlanta frame, surfels and the global surfel map are shared (one ``Structure``). The
-same interface as :class:`aisdf.pipeline.MappingPipeline`: ``add_keyframe``, ``step``,
+mapper interface as the one network (:class:`aisdf.mapper.Mapper`): ``add_keyframe``, ``step``,
 ``sdf``, ``map_messages`` (only the submaps that changed, ``map/index`` and the surfel map;
 ``publish.py``), ``memory``, ``checkpoint``/``restore`` (``persist.py``).
 
@@ -25,89 +25,60 @@ from __future__ import annotations
 
 import time
 from collections import defaultdict
-from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 import torch
 
 from .. import geometry, network, protocol
-from ..mapping.frames import Frame, Keyframe
-from ..mapping.presets import submap_training_config
+from ..mapper.intake import KeyframeIntake
+from ..mapping.frames import Frame, StoredFrame
+from ..mapping.presets import structure_overrides, submap_training_config
 from ..mapping.trainer import Trainer
-from ..observed import ObservedSpace
 from ..structure.measured import MeasuredSurface
-from ..pipeline import MIN_VALID_PIXELS, frame_from_keyframe, grow_bounds
-from .field import blend
+from ..structure.surfel_types import Surfels
+from . import persist
 from .config import SubmapConfig
+from .field import blend
 from .grid import SubmapGrid, cell_id, parse_cell_id
-from .persist import CHECKPOINT_FORMAT, CHECKPOINT_VERSION, SubmapCheckpoints
-from .publish import SubmapPublishing
+from .persist import CHECKPOINT_FORMAT, CHECKPOINT_VERSION
+from .publish import SubmapPublisher
+from .submap import Cell, Submap
 
 PRIOR_REACH_M = 1.0  # surfels this far beyond a submap's box still bound its samples
-Cell = tuple[int, int, int]
 
 
-@dataclass
-class Submap:
-    cell: Cell
-    trainer: Trainer
-    published_step: int = -1  # trainer steps at the last publication
-    version: int = 0  # map version of its newest published snapshot
-    observed_key: tuple = ()  # observed-space state its cached message was built for
-    observed_msg: dict | None = None
-    seen_by: list = field(default_factory=list)  # keyframe keys, arrival order
-    dirty_since: int | None = None  # publication count when its first unpublished step was seen
-
-    @property
-    def id(self) -> str:
-        return cell_id(self.cell)
-
-
-class SubmapPipeline(SubmapPublishing, SubmapCheckpoints):
+class SubmapPipeline:
     """Keyframes in, submaps trained (``add_keyframe``, ``step``); answers (``sdf``,
     ``sdf_grad``); publication (``map_messages``, ``publish.py``); checkpoints
     (``checkpoint``/``restore``, ``persist.py``)."""
+
+    kind = "submaps"
 
     def __init__(self, cfg, atlanta: bool = True, submaps: SubmapConfig | None = None,
                  atlanta_state: dict | None = None):
         self.cfg = cfg
         self.sub_cfg = submaps or SubmapConfig()
         self.atlanta_on = atlanta
-        self.structure = None
-        if atlanta:
-            from ..structure import Structure
-
-            self.structure = Structure(seed=cfg.seed, max_depth=cfg.max_depth)
-            if atlanta_state:
-                self.structure.load_state_dict(atlanta_state)
+        self.intake = KeyframeIntake(cfg.max_depth, cfg.seed, atlanta, atlanta_state, self.sub_cfg.measured)
         if cfg.torch_threads:
             torch.set_num_threads(cfg.torch_threads)
         self.grid: SubmapGrid | None = None
         self.submaps: dict[Cell, Submap] = {}
-        self.frames: dict[tuple[str, int], Keyframe] = {}  # every keyframe once, prepared
-        self._waiting: list[Keyframe] = []  # before the grid exists
+        self.frames: dict[tuple[str, int], StoredFrame] = {}  # every keyframe once, prepared
+        self._waiting: list[StoredFrame] = []  # before the grid exists
         self._recent: list[dict[Cell, int]] = []  # cells the newest keyframes see, with point counts
         self._credit: dict[Cell, float] = defaultdict(float)
-        self.observed = ObservedSpace()
-        self.measured = MeasuredSurface(max_depth=cfg.max_depth) if self.sub_cfg.measured else None
-        self._measured_key, self._measured_pts = None, None  # publish.py's points, once per new keyframe
         self.rng = np.random.default_rng(cfg.seed)
         self._steps = 0
         self._since_keyframe = 0
-        self._timings: dict[str, list[float]] = defaultdict(list)
-        self._pending_timings: dict[str, float] = {}
-        self._bounds: np.ndarray | None = None
-        self._publications = 0  # map_messages(changed_only=True) calls
+        self.publisher = SubmapPublisher(self)
 
     @classmethod
     def from_settings(cls, preset: str = "auto", training: dict[str, Any] | None = None, atlanta: bool = True,
                       surfel_mask: bool = True, surfel_loss: bool = True, surfel_bounds: bool = True,
                       submaps: SubmapConfig | dict | None = None) -> "SubmapPipeline":
-        overrides = dict(training or {})
-        overrides.setdefault("surfel_bounds", bool(atlanta and surfel_bounds))
-        overrides.setdefault("surfel_mask", bool(atlanta and surfel_mask))
-        overrides.setdefault("surfel_loss", bool(atlanta and surfel_loss))
+        overrides = structure_overrides(training, atlanta, surfel_mask, surfel_loss, surfel_bounds)
         sub = submaps if isinstance(submaps, SubmapConfig) else SubmapConfig.model_validate(submaps or {})
         return cls(submap_training_config(preset, **overrides), atlanta=atlanta, submaps=sub)
 
@@ -118,6 +89,18 @@ class SubmapPipeline(SubmapPublishing, SubmapCheckpoints):
 
     # ------------------------------------------------------------------ state
     @property
+    def structure(self):
+        return self.intake.structure
+
+    @property
+    def observed(self):
+        return self.intake.observed
+
+    @property
+    def measured(self) -> MeasuredSurface | None:
+        return self.intake.measured
+
+    @property
     def steps(self) -> int:
         return self._steps
 
@@ -126,41 +109,33 @@ class SubmapPipeline(SubmapPublishing, SubmapCheckpoints):
         return len(self.frames)
 
     @property
+    def ready(self) -> bool:
+        """A submap exists (the grid waits a few keyframes for the Atlanta frame's vertical)."""
+        return bool(self.submaps)
+
+    @property
     def keyframes(self) -> list[Frame]:
         return [k.frame for k in self.frames.values()]
+
+    def keyframe_keys(self) -> list[tuple[str, int]]:
+        return list(self.frames)
 
     # ------------------------------------------------------------------ keyframes
     def add_keyframe(self, kf: protocol.Keyframe | Frame) -> None:
         """Add a keyframe. Raises ValueError (and changes nothing) for one that cannot be
         used: a duplicate (sensor, frame_id), too few valid depth pixels."""
-        frame = frame_from_keyframe(kf) if isinstance(kf, protocol.Keyframe) else kf
-        depth = frame.depth
-        valid = geometry.valid_depth(depth, self.cfg.max_depth)
-        if int(valid.sum()) < MIN_VALID_PIXELS:
-            raise ValueError(f"only {int(valid.sum())} valid depth pixels (need {MIN_VALID_PIXELS})")
-        if frame.key in self.frames:
-            raise ValueError(f"keyframe {frame.sensor}/{frame.frame_id} is already in the map")
-        if self.structure is not None:
-            t = self.structure.process(frame)
-            for k, v in t.items():
-                self._pending_timings[k] = self._pending_timings.get(k, 0.0) + v
-                self._timings[k].append(v)
+        frame = self.intake.accept(kf, self.frames.__contains__)
         t0 = time.perf_counter()
-        prepared = Keyframe.make(frame, self.cfg.max_depth)
+        prepared = StoredFrame.make(frame, self.cfg.max_depth)
         self.frames[frame.key] = prepared
-        self._grow_bounds(frame)
-        self.observed.add(depth, frame.K, frame.T_WC, self.cfg.max_depth)
-        if self.measured is not None:
-            t1 = time.perf_counter()
-            self.measured.add(depth, frame.K, frame.T_WC)
-            self._timings["measured"].append(1e3 * (time.perf_counter() - t1))
+        self.intake.record(frame)
         if self.grid is None:
             self._waiting.append(prepared)
             self._maybe_make_grid(frame)
         else:
             self._assign(prepared)
         self._since_keyframe = 0
-        self._timings["assign"].append(1e3 * (time.perf_counter() - t0))
+        self.intake.timings["assign"].append(1e3 * (time.perf_counter() - t0))
 
     def _maybe_make_grid(self, frame: Frame) -> None:
         s = self.sub_cfg
@@ -175,7 +150,7 @@ class SubmapPipeline(SubmapPublishing, SubmapCheckpoints):
         for kf in waiting:
             self._assign(kf)
 
-    def _ray_points(self, kf: Keyframe, stride: int = 8) -> tuple[np.ndarray, np.ndarray]:
+    def _ray_points(self, kf: StoredFrame, stride: int = 8) -> tuple[np.ndarray, np.ndarray]:
         """World points along a grid of the keyframe's rays (4 per ray, the last on the
         surface): what the keyframe observes. Also the camera centre."""
         d = kf.depth[::stride, ::stride]
@@ -188,7 +163,7 @@ class SubmapPipeline(SubmapPublishing, SubmapCheckpoints):
         pts_C = dirs[:, None, :] * (D[:, None] * fr)[..., None]
         return geometry.transform(T, pts_C.reshape(-1, 3)), T[:3, 3]
 
-    def _assign(self, kf: Keyframe) -> None:
+    def _assign(self, kf: StoredFrame) -> None:
         """Give the keyframe to every submap it observes enough of (creating them)."""
         s = self.sub_cfg
         pts, _ = self._ray_points(kf)
@@ -247,7 +222,7 @@ class SubmapPipeline(SubmapPublishing, SubmapCheckpoints):
 
         return region
 
-    def _pixel_mask(self, kf: Keyframe, c: Cell) -> np.ndarray:
+    def _pixel_mask(self, kf: StoredFrame, c: Cell) -> np.ndarray:
         """Pixels whose sampled segment [min_depth, D + margin] meets the submap's box grown
         by a truncation distance (slab test in grid coordinates)."""
         cfg, grid = self.cfg, self.grid
@@ -273,9 +248,6 @@ class SubmapPipeline(SubmapPublishing, SubmapCheckpoints):
         D = kf.depth.reshape(-1).astype(np.float64)
         near, far = cfg.min_depth, D + cfg.depth_margin
         return ((enter <= leave) & (leave >= near) & (enter <= far) & (D > 0)).reshape(H, W)
-
-    def _grow_bounds(self, frame: Frame) -> None:
-        self._bounds = grow_bounds(self._bounds, frame, self.cfg.max_depth)
 
     # ------------------------------------------------------------------ training
     def _pick(self) -> Submap:
@@ -306,27 +278,19 @@ class SubmapPipeline(SubmapPublishing, SubmapCheckpoints):
     def step(self) -> dict:
         if not self.submaps:
             raise RuntimeError("step() needs at least one keyframe (and a grid)")
-        extra, self._pending_timings = self._pending_timings, {}
+        extra = self.intake.take_pending()
         t = time.perf_counter()
         sm = self._pick()
         info = sm.trainer.step(extra_timings_ms=extra)
         info["submap"] = sm.id
         self._steps += 1
         self._since_keyframe += 1
-        for k, v in info.get("timings_ms", {}).items():
-            self._timings[k].append(v)
-        self._timings["step_wall"].append(1e3 * (time.perf_counter() - t))
-        for v in self._timings.values():
-            del v[:-200]
+        self.intake.record_step(info, 1e3 * (time.perf_counter() - t))
         return info
 
     def stats(self) -> dict:
-        out = {k: round(float(np.mean(v)), 3) for k, v in self._timings.items() if v}
-        out["submaps"] = len(self.submaps)
-        out["dropped_keyframes"] = sum(sm.trainer.dropped_keyframes for sm in self.submaps.values())
-        if self.structure is not None:
-            out.update(self.structure.stats())
-        return out
+        return {**self.intake.stats(), "submaps": len(self.submaps),
+                "dropped_keyframes": sum(sm.trainer.dropped_keyframes for sm in self.submaps.values())}
 
     # ------------------------------------------------------------------ answers
     def _evaluators(self):
@@ -351,6 +315,8 @@ class SubmapPipeline(SubmapPublishing, SubmapCheckpoints):
         return f, g
 
     def memory(self) -> dict[str, int]:
+        """Bytes held, by part: keyframes (with each submap's pixel masks), model (weights and
+        AdamW moments), observed space, measured points."""
         kf = sum(k.nbytes() for k in self.frames.values())
         masks = sum(v.pixel_bits.nbytes for sm in self.submaps.values() for v in sm.trainer.store.keyframes
                     if v.pixel_bits is not None)
@@ -359,14 +325,37 @@ class SubmapPipeline(SubmapPublishing, SubmapCheckpoints):
                 "measured": 0 if self.measured is None else self.measured.nbytes()}
 
 
-def restore_pipeline(d: dict):
-    """A mapper checkpoint's pipeline, single network or submaps."""
-    if d.get("format") == CHECKPOINT_FORMAT:
-        return SubmapPipeline.restore(d)
-    from ..pipeline import MappingPipeline
+    # ------------------------------------------------------------------ outputs
+    def surfels(self) -> Surfels | None:
+        return self.intake.surfels()
 
-    return MappingPipeline.restore(d)
+    def surfel_map(self, version: int) -> protocol.SurfelMap | None:
+        return self.intake.surfel_map(version)
+
+    def measured_points(self) -> np.ndarray:
+        """(M, 3) the union of the measured points every submap publishes (points in overlaps
+        once per submap): what a query service holding the whole map answers with."""
+        return self.publisher.measured_points()
+
+    def submap_snapshot(self, sm: Submap, version: int, epoch: int = 0) -> protocol.WeightSnapshot:
+        return self.publisher.submap_snapshot(sm, version, epoch)
+
+    def index(self, version: int, epoch: int = 0) -> protocol.SubmapIndex:
+        return self.publisher.index(version, epoch)
+
+    def map_messages(self, version: int, changed_only: bool = True, epoch: int = 0,
+                     mark: bool = True) -> list[tuple[str, bytes]]:
+        """``SubmapPublisher.map_messages``: the submaps that changed and are due, the index
+        and the surfel map."""
+        return self.publisher.map_messages(version, changed_only, epoch, mark)
+
+    # ------------------------------------------------------------------ checkpoints
+    def checkpoint(self) -> dict:
+        return persist.checkpoint(self)
+
+    @classmethod
+    def restore(cls, d: dict[str, Any]) -> "SubmapPipeline":
+        return persist.restore(cls, d)
 
 
-__all__ = ["CHECKPOINT_FORMAT", "CHECKPOINT_VERSION", "SubmapConfig", "SubmapPipeline", "parse_cell_id",
-           "restore_pipeline"]
+__all__ = ["CHECKPOINT_FORMAT", "CHECKPOINT_VERSION", "SubmapConfig", "SubmapPipeline", "parse_cell_id"]

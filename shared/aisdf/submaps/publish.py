@@ -1,88 +1,89 @@
-"""What the submap mapper publishes (protocol 1.3; see the README's protocol section): a
+"""What the submap mapper publishes (protocol 1.3; docs/protocol.md): a
 changed submap's weights on ``map/submaps/<id>``, the index on ``map/index`` and the global
 surfel map on ``map/surfels``. Only submaps that changed and are due go out: those in view
 at once, those refined in the background out of view in batches, so the bytes on the wire
 follow what changed, not the size of the map.
 
-A mixin of :class:`~aisdf.submaps.pipeline.SubmapPipeline` (it reads the pipeline's grid,
-submaps, observed space, structure and recent cells); each submap's publication state
-(published step, version, first unpublished publication, cached observed grid) lives on its
-``Submap`` and is checkpointed with it.
+:class:`SubmapPublisher` is held by :class:`~aisdf.submaps.pipeline.SubmapPipeline` and reads
+its grid, submaps, observed space, measured points, structure and recent cells; each submap's
+publication state (published step, version, first unpublished publication, cached observed
+grid) lives on its ``Submap`` and is checkpointed with it, the publication count here.
 """
 
 from __future__ import annotations
 
 import time
-from typing import TYPE_CHECKING
 
 import numpy as np
 
 from .. import keys, protocol
-from ..pipeline import surfel_map_message
-
-if TYPE_CHECKING:
-    from .pipeline import Submap
+from .submap import Submap
 
 
-class SubmapPublishing:
-    _publications: int  # map_messages(changed_only=True) calls, set by the pipeline
+class SubmapPublisher:
+    """The publication side of one ``SubmapPipeline`` (``pipe``)."""
 
-    def _observed_msg(self, sm: Submap) -> dict | None:
-        key = (len(self.observed),)
+    def __init__(self, pipe):
+        self.pipe = pipe
+        self.publications = 0  # map_messages(changed_only=True) calls
+        self._measured_key, self._measured_pts = None, None  # the pool's points, once per new keyframe
+
+    def observed_msg(self, sm: Submap) -> dict | None:
+        key = (len(self.pipe.observed),)
         if sm.observed_key != key:
-            c, grow = sm.cell, self.grid.overlap_m + self.observed.voxel
-            g = self.observed.grid(keep=lambda centres: self.grid.inside(c, centres, grow=grow))
+            c, grow = sm.cell, self.pipe.grid.overlap_m + self.pipe.observed.voxel
+            g = self.pipe.observed.grid(keep=lambda centres: self.pipe.grid.inside(c, centres, grow=grow))
             sm.observed_msg, sm.observed_key = (None if g is None else g.to_msg()), key
         return sm.observed_msg
 
-    def _measured_msg(self, sm: Submap) -> dict | None:
+    def measured_msg(self, sm: Submap) -> dict | None:
         """The measured points (protocol 1.4) in the submap's extended box, or None when the
         mapper pools none."""
-        m = self.measured
+        m = self.pipe.measured
         if m is None:
             return None
         key = (len(m), int(m.counts.sum()))
         if self._measured_key != key:  # the points, once per new keyframe
             self._measured_pts, self._measured_key = m.points(), key
         pts = self._measured_pts
-        inside = self.grid.inside(sm.cell, pts, grow=self.grid.overlap_m) if len(pts) else np.zeros(0, bool)
+        inside = self.pipe.grid.inside(sm.cell, pts, grow=self.pipe.grid.overlap_m) if len(pts) else np.zeros(0, bool)
         return {"voxel": m.voxel, "points": pts[inside].astype(np.float32)}
 
     def measured_points(self) -> np.ndarray:
         """(M, 3) the union of the measured points every submap publishes (points in overlaps
         once per submap): what a query service holding the whole map answers with."""
-        msgs = [self._measured_msg(sm) for sm in self.submaps.values()] if self.grid is not None else []
+        msgs = [self.measured_msg(sm) for sm in self.pipe.submaps.values()] if self.pipe.grid is not None else []
         pts = [m["points"] for m in msgs if m is not None]
         return np.concatenate(pts) if pts else np.zeros((0, 3), np.float32)
 
     def submap_snapshot(self, sm: Submap, version: int, epoch: int = 0) -> protocol.WeightSnapshot:
         model = dict(sm.trainer.model_spec())
         c = sm.cell
-        model["bounds"] = [self.grid.corners_W(c, self.grid.overlap_m).min(0).tolist(),
-                           self.grid.corners_W(c, self.grid.overlap_m).max(0).tolist()]
+        model["bounds"] = [self.pipe.grid.corners_W(c, self.pipe.grid.overlap_m).min(0).tolist(),
+                           self.pipe.grid.corners_W(c, self.pipe.grid.overlap_m).max(0).tolist()]
         return protocol.WeightSnapshot(version, sm.trainer.steps, time.time(), model, sm.trainer.state_numpy(),
-                                       epoch, self._observed_msg(sm), {"id": sm.id, "grid": self.grid.to_msg()},
-                                       self._measured_msg(sm))
+                                       epoch, self.observed_msg(sm), {"id": sm.id, "grid": self.pipe.grid.to_msg()},
+                                       self.measured_msg(sm))
 
     def index(self, version: int, epoch: int = 0) -> protocol.SubmapIndex:
-        return protocol.SubmapIndex(version, time.time(), self.grid.to_msg(),
+        return protocol.SubmapIndex(version, time.time(), self.pipe.grid.to_msg(),
                                     {sm.id: {"version": sm.version, "step": max(sm.published_step, 0)}
-                                     for sm in self.submaps.values()}, epoch)
+                                     for sm in self.pipe.submaps.values()}, epoch)
 
-    def _due(self, sm: Submap, mark: bool = True) -> bool:
+    def due(self, sm: Submap, mark: bool = True) -> bool:
         """Is this changed submap published now? New ones and those the newest keyframes see
         (where the robot is), at once; one changed only by background refinement out of view,
         once it has ``background_publish_steps`` unpublished steps or has waited
         ``background_publish_periods`` publications (bytes follow what changed, not the
         refinement's single steps)."""
-        s = self.sub_cfg
-        if sm.published_step < 0 or any(sm.cell in seen for seen in self._recent):
+        s = self.pipe.sub_cfg
+        if sm.published_step < 0 or any(sm.cell in seen for seen in self.pipe._recent):
             return True
-        since = self._publications if sm.dirty_since is None else sm.dirty_since
+        since = self.publications if sm.dirty_since is None else sm.dirty_since
         if mark:
             sm.dirty_since = since
         return (sm.trainer.steps - sm.published_step >= s.background_publish_steps
-                or self._publications - since >= s.background_publish_periods)
+                or self.publications - since >= s.background_publish_periods)
 
     def map_messages(self, version: int, changed_only: bool = True, epoch: int = 0,
                      mark: bool = True) -> list[tuple[str, bytes]]:
@@ -91,26 +92,20 @@ class SubmapPublishing:
         ``map/submaps/<id>``, the index on ``map/index`` and the global surfel map. With
         ``mark`` False nothing is recorded as published (what a publication would cost)."""
         out = []
-        if self.grid is None:
+        if self.pipe.grid is None:
             return out
         if changed_only and mark:
-            self._publications += 1
-        for sm in self.submaps.values():
-            if changed_only and (sm.trainer.steps == sm.published_step or not self._due(sm, mark)):
+            self.publications += 1
+        for sm in self.pipe.submaps.values():
+            if changed_only and (sm.trainer.steps == sm.published_step or not self.due(sm, mark)):
                 continue
             if mark:
                 sm.published_step, sm.version, sm.dirty_since = sm.trainer.steps, version, None
             snap = self.submap_snapshot(sm, version, epoch)
             out.append((f"{keys.MAP_SUBMAPS}/{sm.id}", protocol.pack(snap.to_msg())))
         out.append((keys.MAP_INDEX, protocol.pack(self.index(version, epoch).to_msg())))
-        smap = self.surfel_map(version)
+        smap = self.pipe.surfel_map(version)
         if smap is not None:
             smap.epoch = epoch
             out.append((keys.MAP_SURFELS, protocol.pack(smap.to_msg())))
         return out
-
-    def surfels(self):
-        return None if self.structure is None else self.structure.global_surfels()
-
-    def surfel_map(self, version: int) -> protocol.SurfelMap | None:
-        return surfel_map_message(self.structure, version)

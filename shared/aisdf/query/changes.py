@@ -8,10 +8,10 @@ from collections.abc import Callable
 
 import numpy as np
 
-from aisdf.geometry import kdtree
-from aisdf.observed import pack_keys
-from aisdf.structure.measured import MeasuredPoints
-from aisdf.structure.surfel_types import Surfels
+from ..geometry import kdtree
+from ..observed import pack_keys
+from ..structure.measured import MeasuredPoints
+from ..structure.surfel_types import Surfels
 
 
 def surfel_boxes(s: Surfels) -> np.ndarray:
@@ -73,7 +73,7 @@ def surfel_dirty(ref: Surfels | None, new: Surfels | None, tol: float, grow: flo
     geometry) is within ``grow`` of it and no farther than the nearest kept surfel (+
     ``eps``, beyond the float32 screening of ``ExplicitSdf``): elsewhere the same kept
     surfel is the nearest before and after. A box test screens first."""
-    from aisdf.structure.surfel_map import ExplicitSdf
+    from ..structure.surfel_map import ExplicitSdf
 
     changed, kept, out = surfel_diff(ref, new, tol)
     if not len(changed):

@@ -10,14 +10,14 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 
-from aisdf.observed import ObservedGrid
-from aisdf.structure.measured import MeasuredPoints
-from aisdf.structure.surfel_types import Surfels
-from aisdf.submaps.grid import SubmapGrid
+from ..observed import ObservedGrid
+from ..structure.measured import MeasuredPoints
+from ..structure.surfel_types import Surfels
+from ..submaps.grid import SubmapGrid
 
 
 @dataclass(frozen=True)
-class Submap:
+class SubmapSnapshot:
     """One submap's newest snapshot, its network rebuilt."""
 
     cell: tuple[int, int, int]
@@ -34,7 +34,7 @@ class SubmapSet:
     """The submaps of one mapper incarnation (replaced whole, never changed in place)."""
 
     grid: SubmapGrid
-    submaps: dict  # cell -> Submap
+    submaps: dict  # cell -> SubmapSnapshot
 
     def changed_since(self, other: "SubmapSet") -> list[tuple[int, int, int]]:
         """Cells whose submap differs (added, replaced or gone) between ``other`` and this set."""

@@ -1,4 +1,4 @@
-"""Write ROS recordings for the tests and benchmarks, with ``rosbags`` (the same library the
+"""Write ROS recordings of a posed depth stream, with ``rosbags`` (the same library the
 reader uses): rosbag2 sqlite3 (.db3), rosbag2 MCAP and ROS 1 (.bag).
 
 :func:`write_bag` takes any frame source (``len()``, ``frame(i)`` -> dict(frame_id, stamp,

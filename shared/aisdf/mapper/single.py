@@ -1,6 +1,6 @@
-"""The mapper's algorithm in one object, driven in-process by the mapper service, the
-benchmark and the tests alike: per keyframe, the Atlanta frame and surfels (when on),
-then continual training, and the map as protocol messages. No Zenoh, no files.
+"""The one-network mapper (``mapper: single``): the Atlanta frame and surfels per keyframe
+(when on), continual training of one network for the whole map, and the map as protocol
+messages (``map/weights``, ``map/surfels``). Implements :class:`aisdf.mapper.Mapper`.
 
     pipe = MappingPipeline.from_settings("cpu", atlanta=True)
     pipe.add_keyframe(keyframe)      # protocol.Keyframe or mapping.Frame
@@ -11,81 +11,45 @@ then continual training, and the map as protocol messages. No Zenoh, no files.
 from __future__ import annotations
 
 import time
-from collections import defaultdict
 from typing import Any
 
 import numpy as np
 
-from . import geometry, keys, protocol
-from .mapping.frames import Frame
-from .mapping.presets import training_config
-from .mapping.trainer import Trainer
-from .observed import ObservedSpace
-from .structure.measured import MeasuredSurface
-from .structure.surfel_types import Surfels
-
-MIN_VALID_PIXELS = 64
-
-
-def frame_from_keyframe(kf: protocol.Keyframe) -> Frame:
-    """The frame of a received keyframe: depth in metres, and for ``<u2`` depth the raw
-    values too (a stored keyframe holds those: half the bytes, the same metres)."""
-    raw = kf.depth if kf.depth.dtype == np.uint16 and kf.depth_scale is not None else None
-    return Frame(kf.frame_id, kf.stamp, kf.depth_m(), kf.K, kf.T_WC, sensor=kf.sensor, depth_raw=raw,
-                 depth_scale=None if raw is None else float(kf.depth_scale))
-
-
-def grow_bounds(bounds: np.ndarray | None, frame: Frame, max_depth: float = np.inf) -> np.ndarray:
-    """(2, 3) world box of what is seen so far, grown by a keyframe's valid points
-    (``geometry.valid_depth``) and its camera."""
-    d = frame.depth[::4, ::4]
-    d = np.where(geometry.valid_depth(d, max_depth), d, 0.0)
-    K = frame.K.copy()
-    K[:2] /= 4
-    pts = geometry.backproject(d, K).reshape(-1, 3)
-    pts = geometry.transform(frame.T_WC, pts[np.isfinite(pts[:, 0])])
-    pts = np.concatenate([pts, frame.T_WC[None, :3, 3]])
-    lo, hi = pts.min(0), pts.max(0)
-    if bounds is None:
-        return np.stack([lo, hi])
-    return np.stack([np.minimum(bounds[0], lo), np.maximum(bounds[1], hi)])
-
-
-def surfel_map_message(structure, version: int) -> protocol.SurfelMap | None:
-    """The global surfel map with its Atlanta frame (None without structure or a frame yet)."""
-    if structure is None:
-        return None
-    frame = structure.atlanta_frame()
-    if frame is None:
-        return None
-    s = structure.global_surfels()
-    return protocol.SurfelMap(version, time.time(), frame.vertical, frame.horizontal, s.to_protocol_dict())
+from .. import keys, protocol
+from ..mapping.frames import Frame
+from ..mapping.presets import structure_overrides, training_config
+from ..mapping.trainer import Trainer
+from ..structure.measured import MeasuredSurface
+from ..structure.surfel_types import Surfels
+from .intake import KeyframeIntake
 
 
 class MappingPipeline:
+    kind = "single"
+
     def __init__(self, trainer: Trainer, atlanta: bool = True, atlanta_state: dict | None = None,
                  measured: bool = True):
         self.trainer = trainer
         self.atlanta_on = atlanta
-        self.structure = None
-        if atlanta:
-            from .structure import Structure
+        # Every keyframe's depth pixels pooled into 10 cm voxels, sent with each snapshot
+        # (protocol 1.5: the query service's fused answers use them).
+        self.intake = KeyframeIntake(trainer.cfg.max_depth, trainer.cfg.seed, atlanta, atlanta_state, measured)
+        if self.structure is not None and trainer.cfg.surfel_bounds:
+            from ..structure.prior import SurfelPrior
 
-            self.structure = Structure(seed=trainer.cfg.seed, max_depth=trainer.cfg.max_depth)
-            if atlanta_state:
-                self.structure.load_state_dict(atlanta_state)
-            if trainer.cfg.surfel_bounds:
-                from .structure.prior import SurfelPrior
+            trainer.bound_prior = SurfelPrior(self.structure)
 
-                trainer.bound_prior = SurfelPrior(self.structure)
-        self._timings: dict[str, list[float]] = defaultdict(list)
-        self._pending_timings: dict[str, float] = {}
-        self._bounds: np.ndarray | None = None
-        self.last_ids: set[int] = set()
-        self.observed = ObservedSpace()
-        # Protocol 1.5: every keyframe's depth pixels pooled into 10 cm voxels, sent with each
-        # snapshot (the query service's fused answers use them, as a submap mapper's since 1.4).
-        self.measured = MeasuredSurface(max_depth=trainer.cfg.max_depth) if measured else None
+    @property
+    def structure(self):
+        return self.intake.structure
+
+    @property
+    def observed(self):
+        return self.intake.observed
+
+    @property
+    def measured(self) -> MeasuredSurface | None:
+        return self.intake.measured
 
     @classmethod
     def from_settings(cls, preset: str = "auto", training: dict[str, Any] | None = None, atlanta: bool = True,
@@ -94,10 +58,7 @@ class MappingPipeline:
         """Preset + overrides; the Table II switches (and ``surfel_bounds``, beyond the paper)
         only matter with ``atlanta`` on. ``measured``: pool the depth pixels and publish them
         (protocol 1.5; false: 1.4's snapshots, without points)."""
-        overrides = dict(training or {})
-        overrides.setdefault("surfel_bounds", bool(atlanta and surfel_bounds))
-        overrides.setdefault("surfel_mask", bool(atlanta and surfel_mask))
-        overrides.setdefault("surfel_loss", bool(atlanta and surfel_loss))
+        overrides = structure_overrides(training, atlanta, surfel_mask, surfel_loss, surfel_bounds)
         return cls(Trainer(training_config(preset, **overrides)), atlanta=atlanta, measured=measured)
 
     def describe(self) -> str:
@@ -120,62 +81,40 @@ class MappingPipeline:
     def n_keyframes(self) -> int:
         return self.trainer.n_keyframes
 
+    @property
+    def ready(self) -> bool:
+        return self.trainer.n_keyframes > 0
+
     def add_keyframe(self, kf: protocol.Keyframe | Frame) -> None:
         """Add a keyframe. Raises ValueError (and changes nothing) for one that cannot be
         used: a duplicate (sensor, frame_id), too few valid depth pixels."""
-        frame = frame_from_keyframe(kf) if isinstance(kf, protocol.Keyframe) else kf
-        depth = frame.depth
-        valid = geometry.valid_depth(depth, self.trainer.cfg.max_depth)
-        if int(valid.sum()) < MIN_VALID_PIXELS:
-            raise ValueError(f"only {int(valid.sum())} valid depth pixels (need {MIN_VALID_PIXELS})")
-        if frame.key in {f.key for f in self.trainer.keyframes}:
-            raise ValueError(f"keyframe {frame.sensor}/{frame.frame_id} is already in the map")
-        if self.structure is not None:
-            t = self.structure.process(frame)
-            for k, v in t.items():
-                self._pending_timings[k] = self._pending_timings.get(k, 0.0) + v
-                self._timings[k].append(v)
+        frame = self.intake.accept(kf, lambda key: key in {f.key for f in self.trainer.keyframes})
         self.trainer.add_keyframe(frame)
-        self._grow_bounds(frame)
-        t = time.perf_counter()
-        self.observed.add(depth, frame.K, frame.T_WC, self.trainer.cfg.max_depth)
-        self._timings["observed"].append(1e3 * (time.perf_counter() - t))
-        if self.measured is not None:
-            t = time.perf_counter()
-            self.measured.add(depth, frame.K, frame.T_WC)
-            self._timings["measured"].append(1e3 * (time.perf_counter() - t))
+        self.intake.record(frame)
 
-    def _grow_bounds(self, frame: Frame) -> None:
-        self._bounds = grow_bounds(self._bounds, frame, self.trainer.cfg.max_depth)
+    def keyframe_keys(self) -> list[tuple[str, int]]:
+        return [f.key for f in self.trainer.keyframes]
 
     # ------------------------------------------------------------------ training
 
     def step(self) -> dict:
-        extra, self._pending_timings = self._pending_timings, {}
+        extra = self.intake.take_pending()
         t = time.perf_counter()
         info = self.trainer.step(extra_timings_ms=extra)
         info.setdefault("timings_ms", {})
-        for k, v in info["timings_ms"].items():
-            self._timings[k].append(v)
-        self._timings["step_wall"].append(1e3 * (time.perf_counter() - t))
-        for v in self._timings.values():
-            del v[:-200]  # keep recent history only
+        self.intake.record_step(info, 1e3 * (time.perf_counter() - t))
         return info
 
     def stats(self) -> dict:
         """Mean per-module timings in ms over recent steps/keyframes (the paper's Table III)."""
-        out = {k: round(float(np.mean(v)), 3) for k, v in self._timings.items() if v}
-        out["dropped_keyframes"] = self.trainer.dropped_keyframes
-        if self.structure is not None:
-            out.update(self.structure.stats())
-        return out
+        return {**self.intake.stats(), "dropped_keyframes": self.trainer.dropped_keyframes}
 
     # ------------------------------------------------------------------ outputs
 
     def weight_snapshot(self, version: int) -> protocol.WeightSnapshot:
         model = dict(self.trainer.model_spec())
-        if self._bounds is not None:
-            model["bounds"] = self._bounds.tolist()
+        if self.intake.bounds is not None:
+            model["bounds"] = self.intake.bounds.tolist()
         return protocol.WeightSnapshot(version, self.steps, time.time(), model, self.trainer.state_numpy(),
                                        observed=self.observed.message(),
                                        measured=None if self.measured is None else self.measured.message())
@@ -187,10 +126,10 @@ class MappingPipeline:
         return self.measured.message()["points"]
 
     def surfels(self) -> Surfels | None:
-        return None if self.structure is None else self.structure.global_surfels()
+        return self.intake.surfels()
 
     def surfel_map(self, version: int) -> protocol.SurfelMap | None:
-        return surfel_map_message(self.structure, version)
+        return self.intake.surfel_map(version)
 
     def sdf(self, points: np.ndarray) -> np.ndarray:
         return self.trainer.sdf(points)
@@ -222,7 +161,7 @@ class MappingPipeline:
     def checkpoint(self) -> dict:
         return {"trainer": self.trainer.checkpoint(), "atlanta": self.atlanta_on,
                 "structure": None if self.structure is None else self.structure.state_dict(),
-                "bounds": None if self._bounds is None else self._bounds.tolist(),
+                "bounds": None if self.intake.bounds is None else self.intake.bounds.tolist(),
                 "observed": self.observed.state_dict(),
                 "measured": None if self.measured is None else self.measured.state_dict()}
 
@@ -234,9 +173,9 @@ class MappingPipeline:
         p = cls(Trainer.from_checkpoint(d["trainer"]), atlanta=d["atlanta"], atlanta_state=d.get("structure"),
                 measured=not has or d["measured"] is not None)
         if has and d["measured"] is not None:
-            p.measured = MeasuredSurface.from_state_dict(d["measured"])
+            p.intake.measured = MeasuredSurface.from_state_dict(d["measured"])
         if d.get("bounds") is not None:
-            p._bounds = np.asarray(d["bounds"])
+            p.intake.bounds = np.asarray(d["bounds"])
         if d.get("observed") is not None:
             p.observed.load_state_dict(d["observed"])
         else:  # a checkpoint from before observed space: rebuild it from the kept keyframes

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from aisdf.geometry import kdtree
+from ..geometry import kdtree
 
 
 def tiled_marching_cubes(fn, lo: np.ndarray, res: float, n, tile: int = 64) -> tuple[np.ndarray, np.ndarray]:

@@ -1,7 +1,6 @@
-"""A check for a machine with a GPU (not part of ``make test``; it runs on the CPU too):
+"""``aisdf bench device``: a check for a machine with a GPU (it runs on the CPU too):
 
-    .venv/bin/python tests/run_device_check.py [--map runs/bench-query/map-submaps.msgpack]
-                                               [--steps 300] [--profile] [--out DIR]
+    aisdf bench device [--map runs/bench-query/map-submaps.msgpack] [--steps 300] [--profile] [--out DIR]
 
 1. The query engine with ``device="auto"`` (CUDA where there is one) against the engine on the
    CPU, on the same map (``aisdf bench query``'s cached demo map, which that command writes):
@@ -12,8 +11,7 @@
 3. With ``--profile``: where 100 steps of each mapper spend their time (cProfile, top 22).
 
 Prints one JSON (also ``device_check.json`` in ``--out``). On a GPU machine without this
-project's installed environment: put ``shared`` on ``sys.path`` and the service folders under
-their package names (``aisdf_query`` -> ``services/query``...) on ``PYTHONPATH``.
+project's installed environment: ``PYTHONPATH=shared python -m aisdf.bench.device``.
 """
 
 from __future__ import annotations
@@ -23,19 +21,15 @@ import cProfile
 import io
 import json
 import pstats
-import sys
 import time
 from pathlib import Path
 
 import numpy as np
 import torch
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT / "shared"))
-
-from aisdf import protocol  # noqa: E402
-from aisdf.demo import eval_points_from  # noqa: E402
-from aisdf.synthetic import SyntheticSequence  # noqa: E402
+from .. import protocol, query_messages
+from ..demo import eval_points_from
+from ..synthetic import SyntheticSequence
 
 
 def _sync() -> None:
@@ -54,7 +48,7 @@ def _median_ms(fn, n: int = 10) -> float:
 
 
 def engines(map_path: Path, n_eval: int) -> dict:
-    from aisdf_query.engine import QueryEngine
+    from ..query.engine import QueryEngine
 
     m = protocol.unpack(map_path.read_bytes())
     seq = SyntheticSequence(building="office", n_frames=int(m.get("n_frames", 4050)), fps=30.0, seed=0)
@@ -70,7 +64,7 @@ def engines(map_path: Path, n_eval: int) -> dict:
     out: dict = {}
     eg, ec = engine("auto"), engine("cpu")
     out["engine_device"] = str(eg.device)
-    R = protocol.SdfRequest
+    R = query_messages.SdfRequest
     rg, rc = (e.answer_sdf(R(pts, gradient=True, exact=True)) for e in (eg, ec))
     d = np.abs(rg.sdf - rc.sdf)
     out["exact_auto_vs_cpu"] = {"mean_cm": 100 * float(d.mean()), "max_cm": 100 * float(d.max()),
@@ -96,16 +90,16 @@ def engines(map_path: Path, n_eval: int) -> dict:
 
 
 def mappers(steps: int, profile: bool) -> dict:
-    from aisdf.pipeline import MappingPipeline
-    from aisdf.submaps.pipeline import SubmapPipeline
+    from ..mapper import MAPPER_KINDS
+    from ..mapper.factory import make_mapper
 
     seq = SyntheticSequence(building="office", n_frames=600, seed=0)
     frames = [seq.frame(i) for i in range(0, 600, 20)]
     pts = eval_points_from(seq, 600, 20000, np.random.default_rng(1))
     gt = seq.gt_sdf(pts)
     out: dict = {}
-    for cls in (SubmapPipeline, MappingPipeline):
-        pipe = cls.from_settings("auto")
+    for kind in MAPPER_KINDS:
+        pipe = make_mapper(kind, "auto")
         t = time.perf_counter()
         for f in frames:
             pipe.add_keyframe(protocol.Keyframe(f["frame_id"], f["stamp"], np.asarray(f["depth"], np.float32), f["K"],
@@ -120,7 +114,7 @@ def mappers(steps: int, profile: bool) -> dict:
         rec = {"keyframes": int(pipe.n_keyframes), "add_s": round(t_add, 2), "steps": int(pipe.steps),
                "step_ms": round(1e3 * dt / max(pipe.steps, 1), 1),
                "implicit_error_cm": round(100 * float(np.abs(np.asarray(pipe.sdf(pts), np.float64) - gt).mean()), 2),
-               "describe": pipe.describe() if hasattr(pipe, "describe") else "one network"}
+               "describe": pipe.describe()}
         if profile:
             pr = cProfile.Profile()
             pr.enable()
@@ -131,13 +125,13 @@ def mappers(steps: int, profile: bool) -> dict:
             sio = io.StringIO()
             pstats.Stats(pr, stream=sio).sort_stats("tottime").print_stats(22)
             rec["profile"] = [line for line in sio.getvalue().splitlines() if line.strip()]
-        out[cls.__name__] = rec
+        out[kind] = rec
     return out
 
 
-def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--map", type=Path, default=ROOT / "runs" / "bench-query" / "map-submaps.msgpack",
+def main(argv: list[str] | None = None) -> None:
+    ap = argparse.ArgumentParser(prog="aisdf bench device", description=__doc__.split("\n\n")[0])
+    ap.add_argument("--map", type=Path, default=Path("runs") / "bench-query" / "map-submaps.msgpack",
                     help="a map aisdf bench query cached (its map-submaps.msgpack)")
     ap.add_argument("--eval-points", type=int, default=50_000)
     ap.add_argument("--steps", type=int, default=300)

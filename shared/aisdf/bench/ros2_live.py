@@ -1,7 +1,8 @@
-"""The live ROS 2 source against the protocol-v1 frontend, on the same synthetic frames.
+"""``aisdf bench ros2-live``: the live ROS 2 source against the protocol-v1 frontend, on the
+same synthetic frames.
 
-    .venv/bin/python tests/run_ros2_live_compare.py                 # 300 frames, office, 160x120
-    .venv/bin/python tests/run_ros2_live_compare.py --n-frames 900 --train-s 90
+    aisdf bench ros2-live                                  # 300 frames, office, 160x120
+    aisdf bench ros2-live --n-frames 900 --train-s 90
 
 Both paths run at once (``--sequential``: one after the other) as real processes over real
 Zenoh on loopback (explicit endpoints, multicast scouting off), each with its own
@@ -19,8 +20,8 @@ SDF error (their network after the stream plus ``--train-s`` seconds, and the me
 taken every 3 s in the second half of that time, evaluated on iSDF-protocol points against
 the building's exact SDF; timing-dependent: a live mapper trains as fast as the machine lets
 it, and a map's error swings between snapshots); and the same-training error (each path's keyframes trained in-process
-with the same seed and step schedule), the fair comparison. The issue's criterion: ROS 2 error
-within 1.1x of protocol v1's.
+with the same seed and step schedule), the fair comparison; the ROS 2 path is expected within
+1.1x of protocol v1's error.
 """
 
 from __future__ import annotations
@@ -36,9 +37,9 @@ from pathlib import Path
 
 import numpy as np
 
-from aisdf import keys, protocol, transport
-from aisdf.config import PARENT_ENV
-from aisdf.stack import Stack, endpoint, free_port, wait_for
+from .. import keys, protocol, transport
+from ..config import PARENT_ENV
+from ..stack import Stack, endpoint, free_port, wait_for
 
 MAPPER_ARGS = ["--preset", "cpu"]
 
@@ -165,14 +166,19 @@ def run_path(kind: str, n_frames: int, width: int, height: int, train_s: float =
 
 
 def reference_keyframes(n_frames: int, width: int, height: int, building: str = "office", seed: int = 0) -> list:
-    """The protocol-v1 frontend's keyframes for the synthetic source, in-process (its own
-    ``stream()``, no Zenoh): what ``aisdf-frontend`` sends for these settings."""
-    from aisdf_frontend.config import FrontendConfig
-    from aisdf_frontend.main import stream
+    """The protocol-v1 frontend's keyframes for the synthetic source, in-process (no Zenoh):
+    what ``aisdf-frontend`` sends with these settings and its defaults (30 fps, noise on,
+    the default keyframe selection, ``f4`` depth, sensor ``depth``)."""
+    from ..keyframes import KeyframeConfig, KeyframeSelector, keyframe_message
+    from ..synthetic import SyntheticSequence
 
-    cfg = FrontendConfig(n_frames=n_frames, width=width, height=height, building=building, seed=seed, realtime=False)
+    seq = SyntheticSequence(building=building, n_frames=n_frames, H=height, W=width, fps=30.0, noise=True, seed=seed)
+    sel = KeyframeSelector(KeyframeConfig())
     out: list = []
-    stream(cfg, lambda msg: out.append(protocol.Keyframe.from_msg(msg)), threading.Event())
+    for i in range(len(seq)):
+        f = seq.frame(i)
+        if sel.is_keyframe(float(f["stamp"]), f["depth"], f["K"], f["T_WC"]):
+            out.append(keyframe_message(f))
     return out
 
 
@@ -192,8 +198,8 @@ def compare_keyframes(a: list, b: list) -> dict:
 
 def eval_setup(n_frames: int, width: int, height: int, building: str = "office", seed: int = 0,
                n_points: int = 50_000):
-    from aisdf.metrics import eval_points
-    from aisdf.synthetic import SyntheticSequence
+    from ..metrics import eval_points
+    from ..synthetic import SyntheticSequence
 
     seq = SyntheticSequence(building=building, n_frames=n_frames, H=height, W=width, seed=seed)
     frames = [seq.frame(i) for i in range(0, n_frames, 5)]
@@ -204,7 +210,7 @@ def eval_setup(n_frames: int, width: int, height: int, building: str = "office",
 def snapshot_error(snap: protocol.WeightSnapshot, pts: np.ndarray, gt: np.ndarray) -> float:
     import torch
 
-    from aisdf.network import build_model, load_numpy_state
+    from ..network import build_model, load_numpy_state
 
     net = build_model(snap.model)
     load_numpy_state(net, snap.state)
@@ -219,7 +225,7 @@ def trained_error(keyframes: list, pts: np.ndarray, gt: np.ndarray, steps_first:
     of the network on ``pts`` (metres) and the number of steps."""
     import torch
 
-    from aisdf.pipeline import MappingPipeline
+    from ..mapper.single import MappingPipeline
 
     torch.set_num_threads(1)
     training = {"seed": seed}
@@ -234,7 +240,7 @@ def trained_error(keyframes: list, pts: np.ndarray, gt: np.ndarray, steps_first:
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p = argparse.ArgumentParser(prog="aisdf bench ros2-live", description=__doc__.split("\n\n")[0])
     p.add_argument("--n-frames", type=int, default=300)
     p.add_argument("--width", type=int, default=160)
     p.add_argument("--height", type=int, default=120)

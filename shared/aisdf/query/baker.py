@@ -21,37 +21,16 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from aisdf.baked import BakeConfig, BakedField, bake
-from aisdf.structure.fusion import DEFAULT_FUSE_RADIUS, fuse
-from aisdf.structure.measured import measured_fuse_grad
-from aisdf.structure.surfel_types import Surfels
-from aisdf.submaps.field import covering
-
+from ..baked import BakeConfig, BakedField, bake
+from ..structure.fusion import DEFAULT_FUSE_RADIUS
+from ..structure.surfel_types import Surfels
+from ..submaps.field import covering
+from .answer import served_answer
 from .changes import measured_changes, surfel_dirty
 from .mapstate import MapState
 
 log = logging.getLogger(__name__)
 BAKE_CHUNK = 2048  # network points per pass while baking: bounds the activations (~15 MB at width 128)
-
-
-def fused_answer(state: MapState, pts: np.ndarray, sdf_i: np.ndarray, grad_i: np.ndarray | None,
-                 d_e: np.ndarray | None, g_e: np.ndarray | None, radius: float,
-                 workers: int = 1) -> tuple[np.ndarray, np.ndarray | None]:
-    """What ``fused`` answers, from the map's implicit answer and the surfel distance at
-    ``pts`` (None: no surfels): ``fusion.fuse`` (the paper's Sec. IV-D, within ``radius``),
-    and where the map carries measured points (protocol 1.4) the measured-surface rule on
-    top (``structure.measured.measured_fuse_grad``: the surfel distance where nothing was
-    measured nearer, capped at the nearest measured point). ``workers``: threads of the
-    nearest-point search."""
-    if d_e is None:
-        d_e, g_e = np.full(len(sdf_i), np.inf, np.float32), np.zeros((len(sdf_i), 3), np.float32)
-    sdf, grad, _ = fuse(sdf_i, grad_i, d_e, g_e, radius)
-    if state.measured is None:
-        return sdf, grad
-    # A measured point counts within the radius only (measured_fuse_grad), so the search may stop there.
-    d_m, g_m = state.measured.nearest(pts, within=radius, workers=workers)
-    f, g = measured_fuse_grad(sdf, grad, sdf_i, d_e, g_e, d_m, g_m if grad is not None else None, radius=radius)
-    return f.astype(np.float32), (None if g is None else g.astype(np.float32))
 
 
 @dataclass(frozen=True)
@@ -106,7 +85,7 @@ class Baker:
         """points (M, 3) -> (sdf, grad) of the fused field of ``state`` (what ``fused``
         answers), in bounded memory: the network in chunks of ``chunk`` points, the
         surfels in chunks of candidate pairs."""
-        from aisdf.structure.surfel_map import ExplicitSdf
+        from ..structure.surfel_map import ExplicitSdf
 
         chunk = chunk or (BAKE_CHUNK if self.device.type == "cpu" else self.chunk_points)  # on a GPU: big batches
         explicit = ExplicitSdf(state.surfels, chunk_pairs=131_072) if state.surfels is not None and len(
@@ -130,10 +109,11 @@ class Baker:
                     one(i)
             if explicit is not None:
                 d_e, g_e, _ = explicit(pts.astype(np.float64))
-                sdf, grad = fused_answer(state, pts, sdf, grad, d_e.astype(np.float32), g_e.astype(np.float32),
-                                         self.fuse_radius, workers=self.threads)
+                sdf, grad = served_answer(pts, sdf, grad, d_e.astype(np.float32), g_e.astype(np.float32),
+                                          state.measured, self.fuse_radius, workers=self.threads)
             elif state.measured is not None:
-                sdf, grad = fused_answer(state, pts, sdf, grad, None, None, self.fuse_radius, workers=self.threads)
+                sdf, grad = served_answer(pts, sdf, grad, None, None, state.measured, self.fuse_radius,
+                                          workers=self.threads)
             return sdf, grad
 
         return fn

@@ -1,4 +1,4 @@
-"""``python -m aisdf_query.bench_submaps``: what the query service's bake costs as a submap
+"""``aisdf bench bake``: what the query service's bake costs as a submap
 map grows, incremental (re-evaluating only around the submaps and surfels that changed)
 against a full bake of the same map, and the tiled mesh's memory.
 
@@ -23,14 +23,13 @@ import tracemalloc
 import numpy as np
 import torch
 
-from aisdf import keys, protocol
-from aisdf.baked import bake
-from aisdf.mapping.frames import Frame
-from aisdf.structure.fusion import DEFAULT_FUSE_RADIUS
-from aisdf.submaps.pipeline import SubmapPipeline
-from aisdf.synthetic import SyntheticSequence
-
-from .engine import QueryEngine
+from .. import keys, protocol, query_messages
+from ..baked import bake
+from ..mapping.frames import Frame
+from ..structure.fusion import DEFAULT_FUSE_RADIUS
+from ..submaps.pipeline import SubmapPipeline
+from ..query.engine import QueryEngine
+from ..synthetic import SyntheticSequence
 
 
 def feed(engine: QueryEngine, messages) -> int:
@@ -43,7 +42,7 @@ def feed(engine: QueryEngine, messages) -> int:
 
 
 def main(argv: list[str] | None = None) -> None:
-    ap = argparse.ArgumentParser(prog="python -m aisdf_query.bench_submaps", description=__doc__.split("\n\n")[0])
+    ap = argparse.ArgumentParser(prog="aisdf bench bake", description=__doc__.split("\n\n")[0])
     ap.add_argument("--building", default="floor")
     ap.add_argument("--frames", type=int, default=3000, help="frames of the walk (one keyframe every --every)")
     ap.add_argument("--every", type=int, default=30)
@@ -117,7 +116,7 @@ def main(argv: list[str] | None = None) -> None:
         e.mesh_tile = tile
         tracemalloc.start()
         t = time.perf_counter()
-        m = e.answer_mesh(protocol.MeshRequest(args.mesh_resolution))
+        m = e.answer_mesh(query_messages.MeshRequest(args.mesh_resolution))
         dt = time.perf_counter() - t
         peak = tracemalloc.get_traced_memory()[1]
         tracemalloc.stop()

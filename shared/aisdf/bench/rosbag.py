@@ -1,10 +1,10 @@
-"""Issue 9's "done when" for recordings: the same 7-Scenes frames mapped from a rosbag2 .mcap,
-a rosbag2 .db3 and a ROS 1 .bag give the same map as from the folder format.
+"""``aisdf bench rosbag``: the same 7-Scenes frames mapped from a rosbag2 .mcap, a rosbag2
+.db3 and a ROS 1 .bag give the same map as from the folder format.
 
-    .venv/bin/python tests/run_rosbag_bench.py [--frames 250] [--out runs/bench-rosbag]
+    aisdf bench rosbag [--frames 250] [--out runs/bench-rosbag]
 
 1. Writes the first ``--frames`` RedKitchen frames ($AISDF_DATA/7scenes-redkitchen) into three
-   recordings with ``rosbag_fixtures.write_bag`` (the full TF tree map -> odom -> base_link ->
+   recordings with ``aisdf.ros.record.write_bag`` (the full TF tree map -> odom -> base_link ->
    camera_link -> camera_depth_optical_frame, odom -> base_link at 50 Hz not aligned with the
    images plus one sample at each image's stamp, map frame z-up by the folder's
    gravity-direction.txt): rosbag2 sqlite3 with 16UC1 depth, rosbag2 MCAP with PNG
@@ -30,15 +30,12 @@ from __future__ import annotations
 import argparse
 import json
 import shutil
-import sys
 import time
 from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-
-import rosbag_fixtures as rf  # noqa: E402
+from ..ros import record as rf
 
 ENCODINGS = {"sqlite3": "16UC1", "mcap": "png", "ros1": "32FC1"}
 LABELS = {"sqlite3": "rosbag2 .db3 (16UC1)", "mcap": "rosbag2 .mcap (PNG)", "ros1": "ROS 1 .bag (32FC1)"}
@@ -59,7 +56,7 @@ class InWorld:
 
 
 def main(argv=None) -> None:
-    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p = argparse.ArgumentParser(prog="aisdf bench rosbag", description=__doc__.split("\n\n")[0])
     p.add_argument("--frames", type=int, default=250, help="RedKitchen frames (of 250)")
     p.add_argument("--out", default="runs/bench-rosbag", help="recordings, cache and rosbag.json")
     p.add_argument("--data", help="shared data folder (default $AISDF_DATA or ../shared/data)")
@@ -77,12 +74,12 @@ def main(argv=None) -> None:
 
     import torch
 
-    from aisdf.bench.evaluation import EvalSet
-    from aisdf.bench.methods import ComputeClock, make_runner, run_stream
-    from aisdf.bench.scenes import make_scene
-    from aisdf.datasets import data_root
-    from aisdf.ros.bag import RosbagSource
-    from aisdf.ros.check import check_source
+    from .evaluation import EvalSet
+    from .methods import ComputeClock, make_runner, run_stream
+    from .scenes import make_scene
+    from ..datasets import data_root
+    from ..ros.bag import RosbagSource
+    from ..ros.check import check_source
 
     torch.set_num_threads(a.threads)
     data = Path(a.data) if a.data else data_root()

@@ -15,7 +15,7 @@ network of the newest map.
 Maps are ordered by ``(epoch, version)``: a restarted mapper (a new epoch) replaces the
 map of the one that crashed even though its version counter restarted lower.
 
-Submaps (protocol 1.3, issue 7): a submap mapper publishes one WeightSnapshot per changed
+Submaps (protocol 1.3): a submap mapper publishes one WeightSnapshot per changed
 submap (``map/submaps/<id>``) and an index (``map/index``). The engine keeps per submap
 the newest snapshot of the newest epoch (:class:`SubmapSet`); the map's implicit field is
 their blend (``aisdf.submaps.field.blend``: each point from the submaps whose extended
@@ -35,19 +35,19 @@ import threading
 import numpy as np
 import torch
 
-from aisdf import keys, protocol
-from aisdf.baked import BakeConfig
-from aisdf.collision import chomp_cost
-from aisdf.structure.fusion import DEFAULT_FUSE_RADIUS
-from aisdf.network import build_model, load_numpy_state
-from aisdf.observed import ObservedGrid
-from aisdf.structure.measured import MeasuredPoints
-from aisdf.submaps.field import blend
-from aisdf.submaps.grid import SubmapGrid, parse_cell_id
-from aisdf.structure.surfel_types import Surfels
-
-from .baker import Baker, BakedMap, fused_answer
-from .mapstate import MapState, Submap, SubmapSet, union_measured, union_observed
+from .. import keys, protocol, query_messages
+from ..baked import BakeConfig
+from ..collision import chomp_cost
+from ..structure.fusion import DEFAULT_FUSE_RADIUS
+from ..network import build_model, load_numpy_state
+from ..observed import ObservedGrid
+from ..structure.measured import MeasuredPoints
+from ..submaps.field import blend
+from ..submaps.grid import SubmapGrid, parse_cell_id
+from ..structure.surfel_types import Surfels
+from .answer import served_answer
+from .baker import Baker, BakedMap
+from .mapstate import MapState, SubmapSet, SubmapSnapshot, union_measured, union_observed
 from .meshing import tiled_marching_cubes
 
 log = logging.getLogger(__name__)
@@ -185,7 +185,7 @@ class QueryEngine:
             else:  # the first submap, or a new mapper incarnation: a new set
                 subs, version = {}, snap.version
             measured = snap.measured["points"] if snap.measured is not None and self.use_measured else None
-            subs[cell] = Submap(cell, snap.version, snap.step, net, observed, bounds, measured)
+            subs[cell] = SubmapSnapshot(cell, snap.version, snap.step, net, observed, bounds, measured)
             idx = self._index
             if idx is not None and idx.epoch == snap.epoch and self._complete(subs, idx):
                 version = max(version, idx.version)
@@ -322,7 +322,7 @@ class QueryEngine:
         return sdf, grad
 
     def _explicit(self, surfels: Surfels, pts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        from aisdf.structure.surfel_map import explicit_sdf
+        from ..structure.surfel_map import explicit_sdf
 
         d, g, _ = explicit_sdf(pts.astype(np.float64), surfels)
         return d.astype(np.float32), g.astype(np.float32)
@@ -336,10 +336,10 @@ class QueryEngine:
         sdf, grad = self._field(state, pts, gradient)
         if source == "fused" and (has_surfels or state.measured is not None):
             d_e, g_e = self._explicit(state.surfels, pts) if has_surfels else (None, None)
-            sdf, grad = fused_answer(state, pts, sdf, grad, d_e, g_e, self.fuse_radius)
+            sdf, grad = served_answer(pts, sdf, grad, d_e, g_e, state.measured, self.fuse_radius)
         return sdf, grad
 
-    def answer_sdf(self, req: protocol.SdfRequest) -> protocol.SdfReply:
+    def answer_sdf(self, req: query_messages.SdfRequest) -> query_messages.SdfReply:
         newest = self._state
         if newest is None:
             raise protocol.ProtocolError("no_map", "no map yet: the mapper has not published weights")
@@ -377,11 +377,11 @@ class QueryEngine:
                        else np.zeros(len(pts))).astype(np.float32)
             if req.radii is not None:
                 unknown = unknown - req.radii.astype(np.float32)
-        return protocol.SdfReply(state.version, sdf.astype(np.float32, copy=False),
+        return query_messages.SdfReply(state.version, sdf.astype(np.float32, copy=False),
                                  grad.astype(np.float32, copy=False) if req.gradient else None, coll, observed,
                                  baked, state.epoch, unknown)
 
-    def answer_mesh(self, req: protocol.MeshRequest) -> protocol.MeshReply:
+    def answer_mesh(self, req: query_messages.MeshRequest) -> query_messages.MeshReply:
         state = self._state
         if state is None:
             raise protocol.ProtocolError("no_map", "no map yet: the mapper has not published weights")
@@ -395,4 +395,4 @@ class QueryEngine:
                 "too_large", f"resolution {res} m needs a {n[0]}x{n[1]}x{n[2]} grid, above {self.mesh_max_cells} cells; "
                 "ask for a coarser resolution")
         verts, faces = tiled_marching_cubes(lambda p: self._field(state, p, False)[0], lo, res, n, self.mesh_tile)
-        return protocol.MeshReply(state.version, verts.astype(np.float32), faces.astype(np.int32))
+        return query_messages.MeshReply(state.version, verts.astype(np.float32), faces.astype(np.int32))

@@ -1,12 +1,23 @@
-"""Keyframe selection by motion and overlap. Pure numpy."""
+"""Keyframe selection by motion and overlap (the frontend's, and the benchmarks'). Pure numpy."""
 
 from __future__ import annotations
 
 import numpy as np
+from pydantic import Field
 
-from aisdf import geometry
+from . import geometry, protocol
+from .config import Model
 
-from .config import KeyframeConfig
+
+class KeyframeConfig(Model):
+    """Keyframe selection by motion and overlap (a frame is a keyframe when any test fires)."""
+
+    translation_m: float = Field(0.3, gt=0, description="camera moved this far since the last keyframe")
+    rotation_deg: float = Field(20.0, gt=0, description="camera turned this much since the last keyframe")
+    min_overlap: float = Field(0.7, ge=0, le=1, description="share of the frame's points the last keyframe saw")
+    max_interval_s: float = Field(5.0, gt=0, description="a keyframe at least this often (iSDF forces one every 5 s)")
+    overlap_stride: int = Field(4, ge=1, description="pixel stride of the overlap test")
+    all_frames: bool = Field(False, description="send every frame as a keyframe")
 
 
 def rotation_angle_deg(R: np.ndarray) -> float:
@@ -68,3 +79,15 @@ class KeyframeSelector:
             self.last = (stamp, depth, K, T_WC)
             self.last_reason = reason
         return bool(reason)
+
+
+def keyframe_message(frame: dict, sensor: str = "depth", depth_encoding: str = "f4") -> protocol.Keyframe:
+    """The wire keyframe of a source's frame (dict of frame_id, stamp, depth, K, T_WC): depth
+    as ``f4`` metres or ``u2`` millimetres (what the frontend sends)."""
+    depth = np.asarray(frame["depth"], dtype=np.float32)
+    scale = None
+    if depth_encoding == "u2":
+        depth = np.clip(np.round(np.nan_to_num(depth) * 1000.0), 0, 65535).astype(np.uint16)
+        scale = 1000.0
+    return protocol.Keyframe(int(frame["frame_id"]), float(frame["stamp"]), depth, np.asarray(frame["K"], np.float64),
+                             np.asarray(frame["T_WC"], np.float64), scale, sensor)

@@ -1,0 +1,128 @@
+"""The keyframe intake both mappers share: a received keyframe checked and decoded, the
+Atlanta frame and surfels updated (``structure``), and the map's bookkeeping that does not
+depend on how the map is learnt: the box of what was seen, the observed space, the pool of
+measured points, and the per-module timings. A mapper holds one :class:`KeyframeIntake`
+and stores the frame for training between ``accept`` and ``record``."""
+
+from __future__ import annotations
+
+import time
+from collections import defaultdict
+from collections.abc import Callable
+
+import numpy as np
+
+from .. import geometry, protocol
+from ..mapping.frames import Frame
+from ..observed import ObservedSpace
+from ..structure.measured import MeasuredSurface
+
+MIN_VALID_PIXELS = 64
+TIMING_HISTORY = 200  # recent values kept per timing
+
+
+def frame_from_keyframe(kf: protocol.Keyframe) -> Frame:
+    """The frame of a received keyframe: depth in metres, and for ``<u2`` depth the raw
+    values too (a stored keyframe holds those: half the bytes, the same metres)."""
+    raw = kf.depth if kf.depth.dtype == np.uint16 and kf.depth_scale is not None else None
+    return Frame(kf.frame_id, kf.stamp, kf.depth_m(), kf.K, kf.T_WC, sensor=kf.sensor, depth_raw=raw,
+                 depth_scale=None if raw is None else float(kf.depth_scale))
+
+
+def grow_bounds(bounds: np.ndarray | None, frame: Frame, max_depth: float = np.inf) -> np.ndarray:
+    """(2, 3) world box of what is seen so far, grown by a keyframe's valid points
+    (``geometry.valid_depth``) and its camera."""
+    d = frame.depth[::4, ::4]
+    d = np.where(geometry.valid_depth(d, max_depth), d, 0.0)
+    K = frame.K.copy()
+    K[:2] /= 4
+    pts = geometry.backproject(d, K).reshape(-1, 3)
+    pts = geometry.transform(frame.T_WC, pts[np.isfinite(pts[:, 0])])
+    pts = np.concatenate([pts, frame.T_WC[None, :3, 3]])
+    lo, hi = pts.min(0), pts.max(0)
+    if bounds is None:
+        return np.stack([lo, hi])
+    return np.stack([np.minimum(bounds[0], lo), np.maximum(bounds[1], hi)])
+
+
+def surfel_map_message(structure, version: int) -> protocol.SurfelMap | None:
+    """The global surfel map with its Atlanta frame (None without structure or a frame yet)."""
+    if structure is None:
+        return None
+    frame = structure.atlanta_frame()
+    if frame is None:
+        return None
+    s = structure.global_surfels()
+    return protocol.SurfelMap(version, time.time(), frame.vertical, frame.horizontal, s.to_protocol_dict())
+
+
+class KeyframeIntake:
+    """``accept`` (check, decode, structure) then ``record`` (bounds, observed, measured)."""
+
+    def __init__(self, max_depth: float, seed: int, atlanta: bool = True, atlanta_state: dict | None = None,
+                 measured: bool = True):
+        self.max_depth = max_depth
+        self.structure = None
+        if atlanta:
+            from ..structure import Structure
+
+            self.structure = Structure(seed=seed, max_depth=max_depth)
+            if atlanta_state:
+                self.structure.load_state_dict(atlanta_state)
+        self.bounds: np.ndarray | None = None
+        self.observed = ObservedSpace()
+        self.measured = MeasuredSurface(max_depth=max_depth) if measured else None
+        self.timings: dict[str, list[float]] = defaultdict(list)
+        self._pending: dict[str, float] = {}  # keyframe timings not yet reported with a step
+
+    def accept(self, kf: protocol.Keyframe | Frame, known: Callable[[tuple[str, int]], bool]) -> Frame:
+        """The keyframe's frame, after the structure has processed it. Raises ValueError (and
+        changes nothing) for one that cannot be used: too few valid depth pixels, or a
+        (sensor, frame_id) that ``known`` says is in the map already."""
+        frame = frame_from_keyframe(kf) if isinstance(kf, protocol.Keyframe) else kf
+        valid = geometry.valid_depth(frame.depth, self.max_depth)
+        if int(valid.sum()) < MIN_VALID_PIXELS:
+            raise ValueError(f"only {int(valid.sum())} valid depth pixels (need {MIN_VALID_PIXELS})")
+        if known(frame.key):
+            raise ValueError(f"keyframe {frame.sensor}/{frame.frame_id} is already in the map")
+        if self.structure is not None:
+            for k, v in self.structure.process(frame).items():
+                self._pending[k] = self._pending.get(k, 0.0) + v
+                self.timings[k].append(v)
+        return frame
+
+    def record(self, frame: Frame) -> None:
+        """The stored keyframe's part in the box, the observed space and the measured points."""
+        self.bounds = grow_bounds(self.bounds, frame, self.max_depth)
+        t = time.perf_counter()
+        self.observed.add(frame.depth, frame.K, frame.T_WC, self.max_depth)
+        self.timings["observed"].append(1e3 * (time.perf_counter() - t))
+        if self.measured is not None:
+            t = time.perf_counter()
+            self.measured.add(frame.depth, frame.K, frame.T_WC)
+            self.timings["measured"].append(1e3 * (time.perf_counter() - t))
+
+    def take_pending(self) -> dict[str, float]:
+        """The keyframe timings since the last step (a step reports them with its own)."""
+        out, self._pending = self._pending, {}
+        return out
+
+    def record_step(self, info: dict, wall_ms: float) -> None:
+        for k, v in info.get("timings_ms", {}).items():
+            self.timings[k].append(v)
+        self.timings["step_wall"].append(wall_ms)
+        for v in self.timings.values():
+            del v[:-TIMING_HISTORY]
+
+    def stats(self) -> dict:
+        """Mean timings (ms) over recent values, and the structure's counters."""
+        out = {k: round(float(np.mean(v)), 3) for k, v in self.timings.items() if v}
+        if self.structure is not None:
+            out.update(self.structure.stats())
+        return out
+
+    def surfel_map(self, version: int) -> protocol.SurfelMap | None:
+        return surfel_map_message(self.structure, version)
+
+    def surfels(self):
+        return None if self.structure is None else self.structure.global_surfels()
