@@ -23,7 +23,7 @@ class MapperConfig(ServiceConfig):
     surfel_mask: bool = Field(True, description="Table II switch: sample iSDF rays off surfels, points on surfels")
     surfel_loss: bool = Field(True, description="Table II switch: the surfel loss on surfel points")
     surfel_bounds: bool = Field(True, description="beyond the paper: the global surfel map also bounds the "
-                                "training samples' distances (training.surfel_bounds; docs/scaling-notes.md, Surfel bounds)")
+                                "training samples' distances (training.surfel_bounds; docs/experiments/scaling-notes.md, Surfel bounds)")
     mapper: Literal["submaps", "single"] = Field(
         "submaps", description="submaps: one network per submap (protocol 1.3: map/submaps/<id> and map/index, only "
         "what changed each period); single: one network for the whole map (map/weights)")

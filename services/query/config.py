@@ -47,6 +47,6 @@ class QueryConfig(ServiceConfig):
                                    "frame is refined); 0 = re-evaluate around every change")
     measured: bool = Field(True, description="fused answers use the measured points a submap mapper publishes with "
                            "each submap (protocol 1.4: the surfel distance where nothing was measured nearer, capped "
-                           "at the nearest measured point; docs/scaling-notes.md, The measured surface); false = the 1.3 answer")
+                           "at the nearest measured point; docs/experiments/scaling-notes.md, The measured surface); false = the 1.3 answer")
     workers: int = Field(2, ge=1, le=64, description="threads evaluating sdf requests")
     queue_max: int = Field(32, ge=1, description="sdf requests waiting; beyond, an immediate 'busy' error reply")

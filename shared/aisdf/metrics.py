@@ -1,4 +1,4 @@
-"""The evaluation of iSDF / AiSDF Table I, exactly as ../shared/docs/isdf-reference.md says.
+"""The evaluation of iSDF / AiSDF Table I, exactly as iSDF (Ortiz et al., RSS 2022) defines it.
 
 * Points: ``eval_points``: 200,000 in total, random valid pixels of every 5th frame seen
   so far, one point per ray at a z-depth uniform in [0.1, D + 0.1] (ReplicaCAD,

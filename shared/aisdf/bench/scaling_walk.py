@@ -61,7 +61,7 @@ def frame_of(f: dict):
 
 TOO_HIGH_M = 0.05  # an answer this far above the exact SDF promises a planner room that is not there
 # A point's nearest surface is "unmeasured" when the nearest measured point and the surfel map are both
-# farther than |exact SDF| + this: no keyframe saw that surface (docs/scaling-notes.md: "Where the floor's
+# farther than |exact SDF| + this: no keyframe saw that surface (docs/experiments/scaling-notes.md: "Where the floor's
 # remaining error is")
 UNMEASURED_M = 0.05
 

@@ -1,6 +1,6 @@
 """Rooms extruded from real room layouts, rendered along a trajectory ("layout" reader).
 
-Sources (../shared/data):
+Sources (under $AISDF_DATA):
 
 * AtlantaNet / MatterportLayout corner files (``label_cor/*.txt``): ``u v`` per line in a
   1024x512 equirectangular panorama, ceiling and floor corner alternating. Floor corner:

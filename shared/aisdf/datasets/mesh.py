@@ -4,7 +4,7 @@
 (``*_mesh.ply`` preferred, else the only ``.ply``/``.obj``), a trajectory (``traj.txt``: 16
 numbers per line, row-major 4x4 camera-to-world; or a Redwood ``.log``) and optionally a
 NICE-SLAM ``cam_params.json`` (fx fy cx cy w h), all searched recursively. That covers
-../shared/data/replica-office0-nvblox (the Replica office mesh and its 2000 poses).
+$AISDF_DATA/replica-office0-nvblox (the Replica office mesh and its 2000 poses).
 
 Options: ``trajectory`` (file or (N, 4, 4) array), ``K`` and ``size=(H, W)`` (default:
 cam_params.json, else 640x480 with fx = fy = 525), ``stride`` (every n-th pose),

@@ -9,7 +9,7 @@
 
 * ``replicacad`` (isdf-reference.md): scale 3276.75, 1200x680, fx = fy = 600,
   cx = 599.5, cy = 339.5, 30 fps.
-* ``replica`` (NICE-SLAM, e.g. ../shared/data/replica-office0-nvblox/replica/office0):
+* ``replica`` (NICE-SLAM, e.g. $AISDF_DATA/replica-office0-nvblox/replica/office0):
   the same, but scale 6553.5 and the camera from ``cam_params.json`` in the sequence
   folder or its parent; the ground-truth mesh is ``../<sequence>_mesh.ply`` when present.
 

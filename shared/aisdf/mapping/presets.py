@@ -38,7 +38,7 @@ run spread about 0.5 cm):
   at +60 s, seeds 0 / 1 / 2: 4.08 / 4.12 / 4.19 cm against 3.93 / 4.44 / 4.75 with iSDF's
   replay; worst room ratio 1.13 / 1.03 / 1.15 against 1.44 / 1.18 / 1.43; the office 1.28 /
   2.09 against 1.44 / 1.94 (seeds 1, 2). All three uniform: 3.81 / 4.23 / 4.13 cm, rooms
-  1.07 / 1.41 / 1.80, the office 1.41 / 2.18 (docs/scaling-notes.md, Replay).
+  1.07 / 1.41 / 1.80, the office 1.41 / 2.18 (docs/experiments/scaling-notes.md, Replay).
 """
 
 from __future__ import annotations

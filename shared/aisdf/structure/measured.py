@@ -5,7 +5,7 @@ publishing each submap's points).
 
 Why. The fused answer (``fusion``) takes the smaller of the network and the surfel distance,
 so where the network is below an exact surfel distance it stays below. On the building
-floor that is most of the error (docs/scaling-notes.md, "The surfel map is exact"). Taking the surfel
+floor that is most of the error (docs/experiments/scaling-notes.md, "The surfel map is exact"). Taking the surfel
 distance everywhere halves the error but answers too high at furniture, which the surfel
 map does not hold. The depth pixels do see the furniture: a point is nearer to an obstacle
 than the surfel map says only if something was measured nearer (or the nearer surface was

@@ -17,7 +17,7 @@ class SubmapConfig(Model):
                           "scaling, seeds 0-2, +60 s: 8 m gave the floor 3.83 cm and the office 1.28 (6 m the same "
                           "days: 4.02, 1.41), within one walk's noise, but published 0.315 of republishing "
                           "everything (one seed 0.34, over the issue's 1/3; 6 m: 0.29); 10 m (seeds 0-1) 0.37 "
-                          "(docs/scaling-notes.md, Cell size)")
+                          "(docs/experiments/scaling-notes.md, Cell size)")
     cell_height_m: float = Field(6.0, gt=0, description="vertical size of a cell (m): one storey fits one layer")
     overlap_m: float = Field(0.5, gt=0, description="each submap reaches this far into its neighbours; answers "
                           "blend over twice this width")
@@ -39,4 +39,4 @@ class SubmapConfig(Model):
                                             "unpublished step; submaps in view and new ones go out at once")
     measured: bool = Field(True, description="pool the keyframes' depth pixels into 10 cm voxels and publish, with "
                            "each submap, the mean points of the voxels in its extended box (protocol 1.4: the query "
-                           "service's fused answers use them; docs/scaling-notes.md, The measured surface)")
+                           "service's fused answers use them; docs/experiments/scaling-notes.md, The measured surface)")
