@@ -30,7 +30,7 @@ from pathlib import Path
 
 import numpy as np
 
-from aisdf import keys, protocol, transport
+from aisdf import keys, protocol, query_messages, transport
 from aisdf.config import ZenohOptions
 from aisdf.stack import free_port, wait_for
 
@@ -104,7 +104,7 @@ def info(session, name: str):
 def answer(session):
     try:
         return transport.query(session, keys.key(NS, keys.QUERY_SDF),
-                               protocol.SdfRequest(np.array([[1.0, 1.0, 1.0], [2.0, 1.5, 1.0]])).to_msg(), 5.0)
+                               query_messages.SdfRequest(np.array([[1.0, 1.0, 1.0], [2.0, 1.5, 1.0]])).to_msg(), 5.0)
     except (protocol.ProtocolError, TimeoutError):
         return None
 

@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 from aisdf import protocol as P
+from aisdf import query_messages as Q
 
 
 def arr(a, dtype):
@@ -118,31 +119,31 @@ def test_surfel_map_roundtrip():
 
 def test_sdf_request_reply_roundtrip():
     pts = np.random.default_rng(2).normal(size=(10, 3))
-    r = P.SdfRequest.from_msg(roundtrip(P.SdfRequest(pts, True, 0.5, "implicit").to_msg()))
+    r = Q.SdfRequest.from_msg(roundtrip(Q.SdfRequest(pts, True, 0.5, "implicit").to_msg()))
     assert r.gradient and r.collision_epsilon == 0.5 and r.source == "implicit"
     np.testing.assert_allclose(r.points, pts.astype(np.float32))
-    rep = P.SdfReply(3, np.arange(10, dtype=np.float32), np.ones((10, 3), np.float32), np.zeros(10, np.float32))
-    b = P.SdfReply.from_msg(roundtrip(rep.to_msg()))
+    rep = Q.SdfReply(3, np.arange(10, dtype=np.float32), np.ones((10, 3), np.float32), np.zeros(10, np.float32))
+    b = Q.SdfReply.from_msg(roundtrip(rep.to_msg()))
     assert b.map_version == 3 and b.gradient.shape == (10, 3) and b.collision.shape == (10,)
-    b = P.SdfReply.from_msg(roundtrip(P.SdfReply(1, np.zeros(2, np.float32)).to_msg()))
+    b = Q.SdfReply.from_msg(roundtrip(Q.SdfReply(1, np.zeros(2, np.float32)).to_msg()))
     assert b.gradient is None and b.collision is None and b.unknown is None
     # 1.6: "unknown" only when asked, both ways; absent from a request that does not ask.
-    assert "unknown" not in P.SdfRequest(pts).to_msg()
-    assert P.SdfRequest.from_msg(roundtrip(P.SdfRequest(pts, unknown=True).to_msg())).unknown
+    assert "unknown" not in Q.SdfRequest(pts).to_msg()
+    assert Q.SdfRequest.from_msg(roundtrip(Q.SdfRequest(pts, unknown=True).to_msg())).unknown
     u = np.array([0.0, 0.25], np.float32)
-    b = P.SdfReply.from_msg(roundtrip(P.SdfReply(1, np.zeros(2, np.float32), unknown=u).to_msg()))
+    b = Q.SdfReply.from_msg(roundtrip(Q.SdfReply(1, np.zeros(2, np.float32), unknown=u).to_msg()))
     np.testing.assert_array_equal(b.unknown, u)
     with pytest.raises(P.ProtocolError):  # one distance per point
-        P.SdfReply.from_msg(roundtrip(P.SdfReply(1, np.zeros(3, np.float32), unknown=u).to_msg()))
+        Q.SdfReply.from_msg(roundtrip(Q.SdfReply(1, np.zeros(3, np.float32), unknown=u).to_msg()))
     with pytest.raises(P.ProtocolError):
-        P.SdfRequest.from_msg({**P.SdfRequest(pts).to_msg(), "unknown": "yes"})
+        Q.SdfRequest.from_msg({**Q.SdfRequest(pts).to_msg(), "unknown": "yes"})
 
 
 def test_mesh_roundtrip():
-    assert P.MeshRequest.from_msg(roundtrip(P.MeshRequest(0.05).to_msg())).resolution == 0.05
-    assert P.MeshRequest.from_msg(roundtrip(P.MeshRequest().to_msg())).resolution is None
-    rep = P.MeshReply(4, np.zeros((3, 3), np.float32), np.array([[0, 1, 2]], np.int32))
-    b = P.MeshReply.from_msg(roundtrip(rep.to_msg()))
+    assert Q.MeshRequest.from_msg(roundtrip(Q.MeshRequest(0.05).to_msg())).resolution == 0.05
+    assert Q.MeshRequest.from_msg(roundtrip(Q.MeshRequest().to_msg())).resolution is None
+    rep = Q.MeshReply(4, np.zeros((3, 3), np.float32), np.array([[0, 1, 2]], np.int32))
+    b = Q.MeshReply.from_msg(roundtrip(rep.to_msg()))
     assert b.map_version == 4 and b.faces.tolist() == [[0, 1, 2]]
 
 
@@ -162,7 +163,7 @@ def test_hand_built_messages_decode():
     assert kf.frame_id == 7 and kf.sensor == "kinect"
     assert np.allclose(kf.depth_m(), 2.0)
     req = msgpack.packb({"v": 1, "points": arr([[0, 0, 0], [1, 2, 3]], "<f8")}, use_bin_type=True)
-    r = P.SdfRequest.from_msg(P.unpack(req))
+    r = Q.SdfRequest.from_msg(P.unpack(req))
     assert r.points.shape == (2, 3) and not r.gradient and r.source == "fused" and r.collision_epsilon is None
 
 
@@ -262,19 +263,19 @@ def test_negative_float_depth_rejected():
     ],
 )
 def test_malformed_sdf_requests(msg, match):
-    bad(msg, P.SdfRequest, match=match)
+    bad(msg, Q.SdfRequest, match=match)
 
 
 def test_too_large_checked_before_decoding():
     msg = {"v": 1, "points": {"dtype": "<f4", "shape": [1_000_001, 3], "data": b""}}
     with pytest.raises(P.ProtocolError) as ei:
-        P.SdfRequest.from_msg(P.unpack(msgpack.packb(msg)), max_points=1_000_000)
+        Q.SdfRequest.from_msg(P.unpack(msgpack.packb(msg)), max_points=1_000_000)
     assert ei.value.code == "too_large"
 
 
 def test_mesh_request_bad_resolution():
-    bad({"v": 1, "resolution": 0}, P.MeshRequest, match="positive")
-    bad({"v": 1, "resolution": "fine"}, P.MeshRequest, match="number")
+    bad({"v": 1, "resolution": 0}, Q.MeshRequest, match="positive")
+    bad({"v": 1, "resolution": "fine"}, Q.MeshRequest, match="number")
 
 
 def test_rigid_check():

@@ -1,9 +1,8 @@
-"""Wire protocol v1 (protocol.md): one MessagePack map per payload, arrays as
-``{"dtype", "shape", "data"}`` maps. Pure: bytes in, typed messages out.
-
-The map's messages are here; the planners' requests and replies (``SdfRequest``,
-``SdfReply``, ``MeshRequest``, ``MeshReply``) live in :mod:`aisdf.query_messages` and are
-re-exported, so ``protocol.SdfRequest`` stays the public name.
+"""Wire protocol v1 (docs/protocol.md), the map's side: keyframes, acknowledgements, weight
+snapshots, submap indexes and surfel maps, one MessagePack map per payload, arrays as
+``{"dtype", "shape", "data"}`` maps (``codec``, whose ``pack``/``unpack`` and errors are
+re-exported here). Pure: bytes in, typed messages out. The planners' requests and replies
+(``SdfRequest``, ``SdfReply``, ``MeshRequest``, ``MeshReply``) are :mod:`aisdf.query_messages`.
 
 Every decoding problem raises :class:`ProtocolError` with a protocol error code
 (``bad_request`` for anything malformed); nothing here ever raises anything else on
@@ -36,7 +35,6 @@ from .codec import (  # noqa: F401 - re-exported: protocol is the public entry p
     unpack,
 )
 from .geometry import decode_depth
-from .query_messages import MeshReply, MeshRequest, SdfReply, SdfRequest  # noqa: F401 - re-exported
 
 
 # ----------------------------------------------------------------------------- messages

@@ -1,6 +1,6 @@
 """Wire protocol v1, the planners' side: ``query/sdf`` and ``query/mesh`` requests and
-replies (README, "Wire protocol"). Re-exported by :mod:`aisdf.protocol`, the public entry
-point; the map's messages (keyframes, weights, submaps, surfels, acks) live there.
+replies (docs/protocol.md). The map's messages (keyframes, weights, submaps, surfels, acks)
+are :mod:`aisdf.protocol`.
 
 Every decoding problem raises :class:`~aisdf.codec.ProtocolError` (``bad_request`` for
 anything malformed); nothing here ever raises anything else on untrusted input.

@@ -26,7 +26,7 @@ run spread about 0.5 cm):
   newest keyframe, half-life 100 / 25 / 10 steps: 5.11 / 4.57 / 4.44 cm; towards 1e-4 (10
   steps): 4.77 cm; with steps since the start (100): 5.44 cm. Settling only once a submap has
   had 5 steps per keyframe it holds (``lr_settle_after``): 4.69 cm. Without that condition an
-  under-trained map suffered: two robots on the floor (tests/test_e2e_submaps.py with
+  under-trained map suffered: two robots on the floor (tests/e2e/test_e2e_submaps.py with
   AISDF_TWO_ROBOTS_BUILDING=floor, 292 keyframes, ~830 steps) 15.0 cm against 10.9 cm at
   iSDF's constant rate; with it, 10.2 cm. The 200 m test: one run is chaotic (the office
   room shifted by 1 mm mapped 6.48 cm against 6.05 cm unshifted, seed 0), so single seeds

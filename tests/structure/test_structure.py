@@ -48,7 +48,7 @@ def test_structure_uses_only_the_depth_the_mapper_trains_on():
     give no normals to the Atlanta frame and no surfels either (``geometry.valid_depth``, one
     rule for every consumer of a keyframe's depth). Same analytic room and frames, with and
     without the limit."""
-    from atlanta_scene import atlanta_room, camera, trajectory
+    from helpers.atlanta_scene import atlanta_room, camera, trajectory
 
     from aisdf.geometry import transform, valid_depth
     from aisdf.mapper.single import MappingPipeline

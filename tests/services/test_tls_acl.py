@@ -20,13 +20,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from aisdf import keys, protocol, transport
+from aisdf import keys, protocol, query_messages, transport
 from aisdf.config import ZenohOptions
 from aisdf.stack import free_port, wait_for
 from aisdf.synthetic import SyntheticSequence
 
 pytestmark = [pytest.mark.e2e, pytest.mark.skipif(shutil.which("openssl") is None, reason="needs openssl")]
-TLS = Path(__file__).resolve().parents[1] / "deploy" / "tls"
+TLS = Path(__file__).resolve().parents[2] / "deploy" / "tls"
 NS = "aisdf"  # router.json5's access control names keys under the default namespace
 SERVICES = {"mapper": ["-m", "aisdf_mapper.main", "--preset", "cpu", "--set", "training.network.width=32"],
             "query": ["-m", "aisdf_query.main"],
@@ -107,7 +107,7 @@ def info(d, name):
 
 def sdf_answer(session):
     try:
-        return transport.query(session, keys.key(NS, keys.QUERY_SDF), protocol.SdfRequest(np.zeros((8, 3))).to_msg(),
+        return transport.query(session, keys.key(NS, keys.QUERY_SDF), query_messages.SdfRequest(np.zeros((8, 3))).to_msg(),
                                5.0)
     except (protocol.ProtocolError, TimeoutError):
         return None

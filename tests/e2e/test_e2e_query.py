@@ -11,12 +11,12 @@ import pytest
 import torch
 
 import stranger_client as sc
-from aisdf import protocol
+from aisdf import protocol, query_messages
 from aisdf.metrics import eval_points
 from aisdf.network import NetworkConfig, SDFNetwork, model_spec, state_to_numpy
 from aisdf.stack import Stack, wait_for
 from aisdf.query.engine import QueryEngine
-from small_map import train_small_map
+from helpers.small_map import train_small_map
 
 pytestmark = pytest.mark.e2e
 NS = "aisdf/e2eq"
@@ -63,13 +63,13 @@ def test_query_service_bakes_the_map_and_answers_planner_fields(small_map):
             if smap is not None:
                 e.set_surfels(protocol.SurfelMap.from_msg(protocol.unpack(protocol.pack(smap.to_msg()))))
             e.bake_now()
-            want = e.answer_sdf(protocol.SdfRequest(pts, True, 0.3, radii=radii, observed=True))
+            want = e.answer_sdf(query_messages.SdfRequest(pts, True, 0.3, radii=radii, observed=True))
             np.testing.assert_allclose(sc.unarr(msg["sdf"]), want.sdf, atol=1e-5)
             np.testing.assert_allclose(sc.unarr(msg["gradient"]), want.gradient, atol=1e-4)
             np.testing.assert_array_equal(sc.unarr(msg["observed"]).astype(bool), want.observed)
             assert sc.unarr(msg["observed"]).mean() > 0.99  # evaluation points lie along seen rays
             # Against the truth the bake is about as good as the network of the same map.
-            exact = e.answer_sdf(protocol.SdfRequest(pts, exact=True))
+            exact = e.answer_sdf(query_messages.SdfRequest(pts, exact=True))
             gt = seq.gt_sdf(pts)
             err_b = np.abs(sc.unarr(msg["sdf"]) + radii - gt).mean()
             err_n = np.abs(exact.sdf - gt).mean()
@@ -80,7 +80,7 @@ def test_query_service_bakes_the_map_and_answers_planner_fields(small_map):
             status, m16 = sc.request(s, f"{NS}/query/sdf", {"v": 1, "points": sc.arr(pts, "<f8"), "unknown": True}, 30.0)
             assert status == "ok", m16
             u = sc.unarr(m16["unknown"])
-            np.testing.assert_allclose(u, e.answer_sdf(protocol.SdfRequest(pts, unknown=True)).unknown, atol=1e-6)
+            np.testing.assert_allclose(u, e.answer_sdf(query_messages.SdfRequest(pts, unknown=True)).unknown, atol=1e-6)
             assert u.shape == (len(pts),) and u.min() >= 0 and u.max() > 0.2
             safe = np.minimum(sc.unarr(m16["sdf"]), u)
             high, high_safe = np.mean(sc.unarr(m16["sdf"]) - gt > 0.05), np.mean(safe - gt > 0.05)

@@ -13,7 +13,7 @@ from aisdf.geometry import backproject, transform
 from aisdf.structure.surfel_map import ExplicitSdf, GlobalSurfelMap, SurfelMapConfig, explicit_sdf
 from aisdf.structure.surfel_types import Surfels
 from aisdf.structure.surfels import extract_surfels, keyframe_points
-from atlanta_scene import atlanta_room, camera, trajectory
+from helpers.atlanta_scene import atlanta_room, camera, trajectory
 
 
 def rects(centers, normals, axes1, extents, direction=0, keyframe=0) -> Surfels:

@@ -14,7 +14,7 @@ from aisdf.metrics import eval_points
 from aisdf.submaps.field import blend
 from aisdf.submaps.grid import SubmapGrid, cell_id, parse_cell_id
 from aisdf.mapper.factory import restore_mapper
-from aisdf.submaps.pipeline import SubmapConfig, SubmapPipeline
+from aisdf.submaps.pipeline import SubmapPipeline
 from aisdf.synthetic import SyntheticSequence
 
 R = Rotation.from_euler("xyz", [0.3, -0.2, 1.0]).as_matrix()

@@ -8,7 +8,7 @@ import pytest
 from aisdf.structure.atlanta import AtlantaConfig, AtlantaEstimator, AtlantaFrame
 from aisdf.structure.atlanta_init import axial_modes
 from aisdf.structure.surfels import keyframe_points
-from atlanta_scene import Box, atlanta_room, camera, manhattan_room, trajectory
+from helpers.atlanta_scene import Box, atlanta_room, camera, manhattan_room, trajectory
 
 H, W = 120, 160
 

@@ -8,7 +8,7 @@ import time
 import numpy as np
 import pytest
 
-from aisdf import keys, protocol, transport
+from aisdf import keys, protocol, query_messages, transport
 from aisdf.stack import Stack, wait_for
 
 pytestmark = pytest.mark.e2e
@@ -96,7 +96,7 @@ def test_mapper_killed_mid_run_resumes_without_loss_or_duplicates(tmp_path):
 
 def query_version(s):
     try:
-        r = transport.query(s, keys.key(NS, keys.QUERY_SDF), protocol.SdfRequest(np.zeros((4, 3))).to_msg(), 5.0)
+        r = transport.query(s, keys.key(NS, keys.QUERY_SDF), query_messages.SdfRequest(np.zeros((4, 3))).to_msg(), 5.0)
     except (protocol.ProtocolError, TimeoutError):
         return None
     return r

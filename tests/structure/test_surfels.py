@@ -13,7 +13,7 @@ from aisdf.structure.surfel_config import SurfelConfig
 from aisdf.structure.surfel_fit import find_planes, find_rectangles
 from aisdf.structure.surfel_map import explicit_sdf
 from aisdf.structure.surfels import extract_surfels, keyframe_points
-from atlanta_scene import atlanta_room, camera, trajectory
+from helpers.atlanta_scene import atlanta_room, camera, trajectory
 
 
 def run_sequence(seed: int, H: int, n: int, config: SurfelConfig | None = None, use_local: bool = False):

@@ -7,12 +7,12 @@ import numpy as np
 import pytest
 import torch
 
-from aisdf import protocol
+from aisdf import protocol, query_messages
 from aisdf.baked import BakeConfig, bake
 from aisdf.geometry import backproject, invert, transform
 from aisdf.observed import ObservedGrid, ObservedSpace
 from aisdf.synthetic import SyntheticSequence
-from small_map import train_small_map
+from helpers.small_map import train_small_map
 
 torch.set_num_threads(1)
 
@@ -298,12 +298,12 @@ def test_engine_bakes_and_answers_like_the_network(trained):
     s, frames, snap, _ = trained
     e = engine_with(trained)
     pts = eval_points(frames, n_points=20_000, every=1, rng=0)
-    req = protocol.SdfRequest(pts, gradient=True)
+    req = query_messages.SdfRequest(pts, gradient=True)
     before = e.answer_sdf(req)
     assert not before.baked  # no bake yet: the network answers
     assert e.bake_now() is not None and e.baked.state.version == snap.version
     rep = e.answer_sdf(req)
-    exact = e.answer_sdf(protocol.SdfRequest(pts, gradient=True, exact=True))
+    exact = e.answer_sdf(query_messages.SdfRequest(pts, gradient=True, exact=True))
     assert rep.baked and not exact.baked and rep.map_version == exact.map_version == snap.version
     np.testing.assert_array_equal(exact.sdf, before.sdf)
     diff = np.abs(rep.sdf - exact.sdf)
@@ -315,7 +315,7 @@ def test_engine_bakes_and_answers_like_the_network(trained):
     gt = s.gt_sdf(pts)
     assert abs(np.abs(rep.sdf - gt).mean() - np.abs(exact.sdf - gt).mean()) < 0.005
     # Other sources are the network's, as before.
-    imp = e.answer_sdf(protocol.SdfRequest(pts[:100], source="implicit"))
+    imp = e.answer_sdf(query_messages.SdfRequest(pts[:100], source="implicit"))
     assert not imp.baked
 
 
@@ -330,8 +330,8 @@ def test_engine_radii_observed_and_points_outside_the_bake(trained):
     far = rng.uniform(-1, 1, (500, 3)) + [60.0, -40.0, 30.0]  # nowhere near anything seen
     pts = np.concatenate([surf, far])
     radii = rng.uniform(0, 0.3, len(pts))
-    base = e.answer_sdf(protocol.SdfRequest(pts, gradient=True, collision_epsilon=0.2))
-    sph = e.answer_sdf(protocol.SdfRequest(pts, gradient=True, collision_epsilon=0.2, radii=radii, observed=True))
+    base = e.answer_sdf(query_messages.SdfRequest(pts, gradient=True, collision_epsilon=0.2))
+    sph = e.answer_sdf(query_messages.SdfRequest(pts, gradient=True, collision_epsilon=0.2, radii=radii, observed=True))
     np.testing.assert_allclose(sph.sdf, base.sdf - radii.astype(np.float32), atol=1e-6)
     np.testing.assert_array_equal(sph.gradient, base.gradient)
     from aisdf.collision import chomp_cost
@@ -340,14 +340,14 @@ def test_engine_radii_observed_and_points_outside_the_bake(trained):
     assert sph.observed[:len(surf)].mean() > 0.99 and not sph.observed[len(surf):].any()
     # 1.6: distances to unobserved space, only when asked; of the spheres' surfaces with radii.
     assert base.unknown is None and sph.unknown is None
-    unk = e.answer_sdf(protocol.SdfRequest(pts, unknown=True))
+    unk = e.answer_sdf(query_messages.SdfRequest(pts, unknown=True))
     np.testing.assert_allclose(unk.unknown, e.baked.state.observed.unknown_distance(pts), atol=1e-6)
     assert np.all(unk.unknown[len(surf):] == 0) and np.mean(unk.unknown[:len(surf)] > 0) > 0.9
-    sph_u = e.answer_sdf(protocol.SdfRequest(pts, radii=radii, unknown=True))
+    sph_u = e.answer_sdf(query_messages.SdfRequest(pts, radii=radii, unknown=True))
     np.testing.assert_allclose(sph_u.unknown, unk.unknown - radii.astype(np.float32), atol=1e-6)
     assert e.baker.warm_unknown  # from now on each new map's index is built by the baker
     # Points outside the bake are answered by the network of the same map.
-    net = e.answer_sdf(protocol.SdfRequest(far, gradient=True, exact=True))
+    net = e.answer_sdf(query_messages.SdfRequest(far, gradient=True, exact=True))
     np.testing.assert_allclose(base.sdf[len(surf):], net.sdf, atol=1e-6)
     assert base.map_version == net.map_version
 
@@ -362,5 +362,5 @@ def test_engine_orders_maps_by_epoch_then_version(trained):
     assert e.set_weights(new)
     assert (e.state.epoch, e.state.version) == (7, 2)
     assert not e.set_weights(old)
-    rep = e.answer_sdf(protocol.SdfRequest(np.zeros((3, 3))))
+    rep = e.answer_sdf(query_messages.SdfRequest(np.zeros((3, 3))))
     assert (rep.map_epoch, rep.map_version) == (7, 2)

@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 import torch
 
-from aisdf import protocol
+from aisdf import protocol, query_messages
 from aisdf.mapping.frames import Frame
 from aisdf.mapper.single import MappingPipeline
 from aisdf.structure.surfel_types import Surfels
@@ -78,27 +78,27 @@ def test_messages_and_query_engine_agree(seq):
     assert len(smap) > 0
     eng = QueryEngine(device="cpu")
     with pytest.raises(protocol.ProtocolError) as e:
-        eng.answer_sdf(protocol.SdfRequest(np.zeros((1, 3))))
+        eng.answer_sdf(query_messages.SdfRequest(np.zeros((1, 3))))
     assert e.value.code == "no_map"
     assert eng.set_weights(snap) and not eng.set_weights(snap)  # same version: ignored
     pts = seq.poses[0][:3, 3] + np.random.default_rng(1).uniform(-1, 1, (300, 3))
-    r = eng.answer_sdf(protocol.SdfRequest(pts.astype(np.float32), source="implicit", gradient=True))
+    r = eng.answer_sdf(query_messages.SdfRequest(pts.astype(np.float32), source="implicit", gradient=True))
     np.testing.assert_allclose(r.sdf, p.sdf(pts.astype(np.float32)), atol=1e-5)
     with pytest.raises(protocol.ProtocolError) as e:
-        eng.answer_sdf(protocol.SdfRequest(pts, source="explicit"))
+        eng.answer_sdf(query_messages.SdfRequest(pts, source="explicit"))
     assert e.value.code == "no_map"  # no surfels yet
     assert eng.set_surfels(smap)
-    r_e = eng.answer_sdf(protocol.SdfRequest(pts, source="explicit"))
-    r_f = eng.answer_sdf(protocol.SdfRequest(pts, gradient=True, collision_epsilon=1.0))
+    r_e = eng.answer_sdf(query_messages.SdfRequest(pts, source="explicit"))
+    r_f = eng.answer_sdf(query_messages.SdfRequest(pts, gradient=True, collision_epsilon=1.0))
     e13 = QueryEngine(device="cpu", measured=False)  # 1.3's fused answer (1.5 adds the measured points)
     assert e13.set_weights(snap) and e13.set_surfels(smap)
-    r13 = e13.answer_sdf(protocol.SdfRequest(pts, gradient=True))
+    r13 = e13.answer_sdf(query_messages.SdfRequest(pts, gradient=True))
     assert np.all(r13.sdf <= r.sdf + 1e-6)  # 1.3's fused answer never exceeds the network alone
     assert np.isfinite(r_f.sdf).all() and np.isfinite(r_f.gradient).all()
     assert np.isfinite(r_e.sdf).all() and r_f.collision.shape == (300,)
     eng.max_points = 10
     with pytest.raises(protocol.ProtocolError) as e:
-        eng.answer_sdf(protocol.SdfRequest(pts))
+        eng.answer_sdf(query_messages.SdfRequest(pts))
     assert e.value.code == "too_large"
 
 
@@ -124,12 +124,12 @@ class Sphere(torch.nn.Module):
 def test_mesh_of_a_known_field():
     eng = QueryEngine(device="cpu", mesh_max_cells=10**6)
     eng._state = MapState(7, 0, Sphere(), np.array([[-1.0, -1, -1], [1, 1, 1]]), None, -1)
-    m = eng.answer_mesh(protocol.MeshRequest(0.05))
+    m = eng.answer_mesh(query_messages.MeshRequest(0.05))
     r = np.linalg.norm(m.vertices, axis=1)
     assert m.map_version == 7 and len(m.faces) > 100
     assert np.abs(r - 0.5).max() < 0.01
     with pytest.raises(protocol.ProtocolError) as e:
-        eng.answer_mesh(protocol.MeshRequest(0.001))
+        eng.answer_mesh(query_messages.MeshRequest(0.001))
     assert e.value.code == "too_large"
 
 
@@ -227,12 +227,12 @@ def test_one_network_sends_its_measured_points_1_5(seq):
         assert eng.set_weights(s) and eng.set_surfels(smap)
     assert len(e.state.measured) == len(pts_m) and e13.state.measured is None and e_old.state.measured is None
     pts = eval_points(frames, n_points=3000, every=1, rng=0).astype(np.float32)
-    rep = e.answer_sdf(protocol.SdfRequest(pts, gradient=True, exact=True))
-    r13 = e13.answer_sdf(protocol.SdfRequest(pts, gradient=True, exact=True))
-    r_old = e_old.answer_sdf(protocol.SdfRequest(pts, gradient=True, exact=True))
+    rep = e.answer_sdf(query_messages.SdfRequest(pts, gradient=True, exact=True))
+    r13 = e13.answer_sdf(query_messages.SdfRequest(pts, gradient=True, exact=True))
+    r_old = e_old.answer_sdf(query_messages.SdfRequest(pts, gradient=True, exact=True))
     np.testing.assert_array_equal(r_old.sdf, r13.sdf)
     np.testing.assert_array_equal(r_old.gradient, r13.gradient)
-    imp = e.answer_sdf(protocol.SdfRequest(pts, gradient=True, source="implicit"))
+    imp = e.answer_sdf(query_messages.SdfRequest(pts, gradient=True, source="implicit"))
     d_e, g_e, _ = explicit_sdf(pts.astype(np.float64), Surfels.from_protocol_dict(smap.surfels))
     d_m, g_m = MeasuredPoints(pts_m).nearest(pts)
     want, want_g = measured_fuse_grad(r13.sdf, r13.gradient, imp.sdf, d_e.astype(np.float32),
@@ -247,7 +247,7 @@ def test_one_network_sends_its_measured_points_1_5(seq):
     # centimetres) and the rule bends its field between the bake's samples, so the bake is held
     # to the truth here, not to the exact answer (the query bench measures its fidelity).
     e.bake_now()
-    bk = e.answer_sdf(protocol.SdfRequest(pts))
+    bk = e.answer_sdf(query_messages.SdfRequest(pts))
     err_b = np.abs(bk.sdf - gt).mean()
     print(f"baked 1.5 answer {100 * err_b:.2f} cm")
     assert bk.baked and err_b < err13 and err_b < err + 0.01

@@ -94,9 +94,14 @@ def test_the_scorer_counts_answers_too_high_exactly():
     offsets[30:50] = TOO_HIGH_M - 0.01  # too high, but within 5 cm
     offsets[50:90] = -0.2  # too low: conservative, not counted
 
-    class Pipe:  # no surfel map: the fused answer is the network's
+    class Pipe:  # no surfel map: the fused answer is the network's; no measured points pooled
+        measured = None
+
         def sdf(self, points):
             return (gt + offsets).astype(np.float32)
+
+        def surfels(self):
+            return None
 
     mae, high, unmeasured = _Scorer(np.zeros((200, 3)), gt).evaluate(Pipe())
     assert unmeasured == {}  # nothing measured given: no way to tell
@@ -132,10 +137,13 @@ def test_the_scorer_answers_as_a_planner_that_takes_unknown_space_as_occupied():
     net = np.array([0.1, 0.4, 0.3, 0.45])  # too high at the second point
 
     class Pipe:
-        observed, n_keyframes = Space(), 3
+        observed, n_keyframes, measured = Space(), 3, None
 
         def sdf(self, points):
             return net.astype(np.float32)
+
+        def surfels(self):
+            return None
 
     mae, high, _ = _Scorer(pts, gt).evaluate(Pipe())
     # unknown space 0.5, 0.22, 0.05, 0.5 away: the answers 0.1, 0.22, 0.05 (too low), 0.45
@@ -159,13 +167,13 @@ def test_the_scorer_finds_the_error_at_surfaces_no_keyframe_measured():
     net = np.where(np.arange(10) < 6, gt, gt + 0.3)
 
     class Pipe:
+        measured = True  # publishes measured points: served = the measured answer
+
         def sdf(self, points):
             return net.astype(np.float32)
 
-        def measured_points(self):  # publishes measured points: served = the measured answer
+        def surfels(self):
             return None
-
-        measured = True
 
     mae, _, unmeasured = _Scorer(pts, gt).evaluate(Pipe(), MeasuredPoints(np.zeros((1, 3))))
     # served: exact on the first six; capped at the measured point + slack, x + 0.01, on the last four
