@@ -85,6 +85,7 @@ class SdfReply:
     baked: bool = False  # True when the baked field answered (points outside it: the network of the same map)
     map_epoch: int = 0  # the mapper incarnation of map_version (1.2)
     unknown: np.ndarray | None = None  # (N,) metres to unobserved space, when asked (1.6)
+    map_age_s: float | None = None  # seconds since the map state behind the values arrived (1.7)
 
     def to_msg(self) -> dict:
         msg = {"v": VERSION, "map_version": int(self.map_version), "sdf": encode_array(self.sdf, "<f4"),
@@ -97,6 +98,8 @@ class SdfReply:
             msg["observed"] = encode_array(np.asarray(self.observed, dtype=np.uint8), "|u1")
         if self.unknown is not None:
             msg["unknown"] = encode_array(self.unknown, "<f4")
+        if self.map_age_s is not None:
+            msg["map_age_s"] = float(self.map_age_s)
         return msg
 
     @classmethod
@@ -110,7 +113,8 @@ class SdfReply:
         baked = _get(msg, "baked", bool, False, "a boolean")
         epoch = _get(msg, "map_epoch", int, 0, "an integer")
         unk = decode_array(msg["unknown"], "unknown", ("<f4",), (n,)) if "unknown" in msg else None
-        return cls(mv, sdf, grad, coll, obs, baked, epoch, unk)
+        age = _get(msg, "map_age_s", (int, float), None, "a number") if "map_age_s" in msg else None
+        return cls(mv, sdf, grad, coll, obs, baked, epoch, unk, None if age is None else float(age))
 
 
 @dataclass

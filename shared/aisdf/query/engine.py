@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import logging
 import threading
+import time
 
 import numpy as np
 import torch
@@ -47,7 +48,7 @@ from ..submaps.grid import SubmapGrid, parse_cell_id
 from ..structure.surfel_types import Surfels
 from .answer import served_answer
 from .baker import Baker, BakedMap
-from .mapstate import MapState, SubmapSet, SubmapSnapshot, union_measured, union_observed
+from .mapstate import MapState, Staleness, SubmapSet, SubmapSnapshot, union_measured, union_observed
 from .meshing import tiled_marching_cubes
 
 log = logging.getLogger(__name__)
@@ -78,6 +79,7 @@ class QueryEngine:
         self._surfels: tuple[tuple[int, int], Surfels] | None = None
         self._lock = threading.Lock()  # serialises writers only; readers take the reference
         self.use_measured = bool(measured)  # protocol 1.4: fused answers use the submaps' measured points
+        self._stale: Staleness | None = None  # the newest bake's staleness against the newest map (a cache)
         self.baker = Baker(self._field, lambda: self._state, self.device, chunk_points, fuse_radius, bake_config,
                            bake_threads, bake_duty, bake_nice, surfel_tol, enabled=bake)
 
@@ -356,6 +358,15 @@ class QueryEngine:
                 sdf[out] = s2
                 if req.gradient:
                     grad[out] = g2
+            stale = self._staleness(bk.state, newest)
+            if stale is not None:  # regions the newest map changed since the bake: from the newest map
+                fresh = stale.points(np.asarray(pts))
+                if fresh.any():
+                    s2, g2 = self._network_answer(newest, np.asarray(pts)[fresh], "fused", req.gradient)
+                    sdf[fresh] = s2
+                    if req.gradient:
+                        grad[fresh] = g2
+                state = newest
             baked = True
         else:
             state = newest
@@ -378,8 +389,22 @@ class QueryEngine:
             if req.radii is not None:
                 unknown = unknown - req.radii.astype(np.float32)
         return query_messages.SdfReply(state.version, sdf.astype(np.float32, copy=False),
-                                 grad.astype(np.float32, copy=False) if req.gradient else None, coll, observed,
-                                 baked, state.epoch, unknown)
+                                       grad.astype(np.float32, copy=False) if req.gradient else None, coll, observed,
+                                       baked, state.epoch, unknown, round(time.monotonic() - state.received, 3))
+
+    def _staleness(self, baked: MapState, newest: MapState) -> "Staleness | None":
+        """Which points the bake of ``baked`` may answer differently from ``newest`` (a submap
+        map: the regions of the submaps that changed since, ``Staleness``), or None when the
+        bake answers for the newest map (the same field), or for a one-network map (a new
+        network changes every point: the bake answers, and ``map_age_s`` says how old it is)."""
+        if baked is newest or newest.submaps is None or baked.same_field(newest):
+            return None
+        cached = self._stale
+        if cached is not None and cached.baked is baked and cached.newest is newest:
+            return cached
+        st = Staleness.between(baked, newest, self.fuse_radius)
+        self._stale = st
+        return st
 
     def answer_mesh(self, req: query_messages.MeshRequest) -> query_messages.MeshReply:
         state = self._state

@@ -73,6 +73,50 @@ class MapState:
         return self.submaps.grid is other.submaps.grid and not self.submaps.changed_since(other.submaps)
 
 
+@dataclass(frozen=True)
+class Staleness:
+    """Where a bake of the map ``baked`` may answer differently from the newer map ``newest``:
+    inside the extended boxes of the submaps that changed between them (the blend at a point
+    depends only on the submaps whose boxes hold it), at points no submap covers (answered by
+    the nearest submap, which may be a changed one), and within the fusion radius of measured
+    points that changed (a measured point caps answers that far); everywhere when the two
+    maps are of different mapper incarnations or grids."""
+
+    baked: MapState
+    newest: MapState
+    everywhere: bool
+    changed: tuple = ()
+    moved: MeasuredPoints | None = None
+    radius: float = 0.0
+
+    @classmethod
+    def between(cls, baked: MapState, newest: MapState, radius: float) -> "Staleness":
+        a, b = baked.submaps, newest.submaps
+        if a is None or b is None or baked.epoch != newest.epoch or not a.grid.same_as(b.grid):
+            return cls(baked, newest, True)
+        from .changes import measured_changes
+
+        changed = tuple(b.changed_since(a))
+        return cls(baked, newest, False, changed, measured_changes(a, b, changed), radius)
+
+    def points(self, pts: np.ndarray) -> np.ndarray:
+        """(N,) bool: the points to answer from the newest map."""
+        pts = np.asarray(pts, np.float64).reshape(-1, 3)
+        if self.everywhere:
+            return np.ones(len(pts), bool)
+        if not self.changed:
+            return np.zeros(len(pts), bool)
+        from ..submaps.field import covering
+
+        sset = self.newest.submaps
+        covered, touched = covering(sset.grid, (set(sset.submaps), self.changed), pts)
+        out = touched | ~covered
+        if self.moved is not None and (~out).any():
+            rest = np.flatnonzero(~out)
+            out[rest] = np.isfinite(self.moved.distance(pts[rest], within=self.radius))
+        return out
+
+
 def union_observed(grids: list[ObservedGrid], align: float) -> ObservedGrid | None:
     """One grid holding every voxel any of ``grids`` holds (their union), its origin on a
     multiple of ``align`` (the bake's block, so that successive unions share the bake's
