@@ -286,7 +286,14 @@ class QueryEngine:
         self.baker.stop()
 
     def lag(self) -> dict:
-        return self.baker.lag()
+        """How far answers trail the newest map (``versions``, ``behind_s``), and the bake
+        (``bake_versions``, ``bake_behind_s``). A submap map's answers do not trail: the regions
+        that changed since the bake are answered from the newest map (1.7); a one-network map's
+        answers trail as its bake does."""
+        bake = self.baker.lag()
+        st = self._state
+        answers = bake if st is not None and st.submaps is None else {"versions": 0, "behind_s": 0.0}
+        return {**answers, "bake_versions": bake["versions"], "bake_behind_s": bake["behind_s"]}
 
     # ------------------------------------------------------------------ evaluation
 
