@@ -36,6 +36,9 @@ class QueryConfig(ServiceConfig):
                            "runs on the machine (a mapper, the answers) goes first")
     bake_duty: float = Field(0.75, gt=0, le=1, description="largest share of the time spent baking: after a bake "
                              "of t seconds the baker rests t * (1/bake_duty - 1) seconds")
+    fresh_s: float = Field(2.0, ge=0, description="protocol 1.7: once the bake trails the newest map by more than "
+                           "this (s), the regions of the submaps that changed since the bake are answered from the "
+                           "newest map until the bake catches up; 0 = always")
     bake_block: float = Field(0.2, gt=0, description="baked field: block edge and coarse spacing (m)")
     bake_fine: int = Field(2, ge=1, le=16, description="baked field: fine cells per block edge where refined")
     bake_tol: float = Field(0.005, gt=0, description="baked field: refine a block whose coarse interpolant misses "

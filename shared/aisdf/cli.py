@@ -46,6 +46,7 @@ def _bench(args) -> None:
 
 # Benchmarks with their own options: name, module (with main(argv)), what it measures.
 TOOLS = [
+    ("served", "aisdf.bench.served", "what planners get from the real services over Zenoh while the map grows"),
     ("bake", "aisdf.bench.bake", "the query service's incremental bake against a full bake as a submap map grows"),
     ("rosbag", "aisdf.bench.rosbag", "7-Scenes frames mapped from .mcap, .db3 and ROS 1 recordings against the folder"),
     ("ros2-live", "aisdf.bench.ros2_live", "the live ROS 2 source against the protocol-v1 frontend, real processes"),

@@ -36,7 +36,7 @@ def ask(e, pts, exact=False, gradient=True):
 
 def test_a_changed_region_is_answered_from_the_newest_map_until_its_bake(submap_map):
     m = submap_map
-    e = engine_of(m, fuse_radius=0.5)
+    e = engine_of(m, fuse_radius=0.5, fresh_s=0)
     e.bake_now()
     pts = band_points(m, 6000, np.random.default_rng(5))
     before = ask(e, pts)
@@ -79,7 +79,7 @@ def test_without_the_newest_map_the_stale_bake_would_have_answered(submap_map):
     """The check above fails if the engine serves the bake alone: the changed region's baked
     values are those of the old submap."""
     m = submap_map
-    e = engine_of(m, fuse_radius=0.5)
+    e = engine_of(m, fuse_radius=0.5, fresh_s=0)
     e.bake_now()
     pts = band_points(m, 3000, np.random.default_rng(6))
     old = ask(e, pts, gradient=False)
@@ -110,7 +110,7 @@ def test_map_age_counts_from_the_arrival_of_the_map_behind_the_values(submap_map
 
 def test_requests_during_rebakes_get_old_or_new_values_never_an_error(submap_map):
     m = submap_map
-    e = engine_of(m, fuse_radius=0.5)
+    e = engine_of(m, fuse_radius=0.5, fresh_s=0)
     e.bake_now()
     pts = band_points(m, 2000, np.random.default_rng(8))
     v1 = ask(e, pts, gradient=False).sdf
@@ -148,7 +148,7 @@ def test_requests_during_rebakes_get_old_or_new_values_never_an_error(submap_map
     # that map, within the bake's accuracy), never a mix of versions.
     refs = {}
     for v, s in [(1, None)] + list(zip((2, 3, 4), snaps)):
-        f = engine_of(m, fuse_radius=0.5, bake=False)
+        f = engine_of(m, fuse_radius=0.5, bake=False, fresh_s=0)
         if s is not None:
             f.set_submap(s)
         refs[v] = ask(f, pts, exact=True, gradient=False).sdf
@@ -157,3 +157,27 @@ def test_requests_during_rebakes_get_old_or_new_values_never_an_error(submap_map
         assert np.percentile(err, 99) < 0.01, (v, float(np.percentile(err, 99)))
     assert {v for v, _ in seen} >= {1, 4}
     assert np.array_equal(seen[0][1], v1) or seen[0][0] > 1
+
+
+def test_within_fresh_s_the_bake_answers_alone_then_the_changed_regions_are_fresh(submap_map):
+    """``fresh_s`` (the service's default 2 s): while the bake trails the newest map by at most
+    this, the bake answers every point (the reply is of the baked map); beyond it, the
+    changed regions come from the newest map."""
+    m = submap_map
+    e = engine_of(m, fuse_radius=0.5, fresh_s=0.5)
+    e.bake_now()
+    pts = band_points(m, 3000, np.random.default_rng(9))
+    before = ask(e, pts, gradient=False)
+    e.set_submap(perturbed(m, 2))
+    within = ask(e, pts, gradient=False)
+    assert within.map_version == 1 and np.array_equal(within.sdf, before.sdf)
+    assert e.lag()["behind_s"] <= 0.5
+    time.sleep(0.6)
+    beyond = ask(e, pts, gradient=False)
+    exact = ask(e, pts, exact=True, gradient=False)
+    assert beyond.map_version == 2 and e.lag()["behind_s"] == 0 and e.lag()["bake_behind_s"] > 0.5
+    sset = e.state.submaps
+    covered, touched = covering(sset.grid, (set(sset.submaps), [CHANGED]), pts)
+    fresh = touched | ~covered
+    np.testing.assert_allclose(beyond.sdf[fresh], exact.sdf[fresh], atol=1e-6)
+    np.testing.assert_array_equal(beyond.sdf[~fresh], before.sdf[~fresh])

@@ -65,7 +65,7 @@ class QueryEngine:
                  fuse_radius: float = DEFAULT_FUSE_RADIUS, mesh_resolution: float = 0.05, mesh_max_cells: int = 16_000_000,
                  bake: bool = True, bake_config: BakeConfig | None = None, bake_threads: int = 2,
                  bake_duty: float = 0.75, bake_nice: int = 10, mesh_tile: int = 64, surfel_tol: float = 0.001,
-                 measured: bool = True):
+                 measured: bool = True, fresh_s: float = 2.0):
         self.max_points = max_points
         self.chunk_points = chunk_points
         self.device = pick_device(device)
@@ -80,6 +80,7 @@ class QueryEngine:
         self._lock = threading.Lock()  # serialises writers only; readers take the reference
         self.use_measured = bool(measured)  # protocol 1.4: fused answers use the submaps' measured points
         self._stale: Staleness | None = None  # the newest bake's staleness against the newest map (a cache)
+        self.fresh_s = float(fresh_s)  # the bake answers alone while it trails the newest map by at most this
         self.baker = Baker(self._field, lambda: self._state, self.device, chunk_points, fuse_radius, bake_config,
                            bake_threads, bake_duty, bake_nice, surfel_tol, enabled=bake)
 
@@ -89,7 +90,7 @@ class QueryEngine:
                    cfg.mesh_max_cells, cfg.bake,
                    BakeConfig(block=cfg.bake_block, fine=cfg.bake_fine, band=cfg.bake_band, tol=cfg.bake_tol,
                               near_surface=cfg.bake_near_surface), cfg.bake_threads, cfg.bake_duty, cfg.bake_nice,
-                   cfg.mesh_tile, cfg.bake_surfel_tol, cfg.measured)
+                   cfg.mesh_tile, cfg.bake_surfel_tol, cfg.measured, cfg.fresh_s)
 
     @property
     def fuse_radius(self) -> float:
@@ -287,12 +288,13 @@ class QueryEngine:
 
     def lag(self) -> dict:
         """How far answers trail the newest map (``versions``, ``behind_s``), and the bake
-        (``bake_versions``, ``bake_behind_s``). A submap map's answers do not trail: the regions
-        that changed since the bake are answered from the newest map (1.7); a one-network map's
-        answers trail as its bake does."""
+        (``bake_versions``, ``bake_behind_s``). A submap map's answers trail by at most
+        ``fresh_s``: beyond it the regions that changed since the bake are answered from the
+        newest map (1.7); a one-network map's answers trail as its bake does."""
         bake = self.baker.lag()
         st = self._state
-        answers = bake if st is not None and st.submaps is None else {"versions": 0, "behind_s": 0.0}
+        fresh = st is not None and st.submaps is not None and bake["behind_s"] > self.fresh_s
+        answers = {"versions": 0, "behind_s": 0.0} if fresh else bake
         return {**answers, "bake_versions": bake["versions"], "bake_behind_s": bake["behind_s"]}
 
     # ------------------------------------------------------------------ evaluation
@@ -365,7 +367,7 @@ class QueryEngine:
                 sdf[out] = s2
                 if req.gradient:
                     grad[out] = g2
-            stale = self._staleness(bk.state, newest)
+            stale = self._staleness(bk.state, newest) if self._bake_trails(bk) else None
             if stale is not None:  # regions the newest map changed since the bake: from the newest map
                 fresh = stale.points(np.asarray(pts))
                 if fresh.any():
@@ -398,6 +400,13 @@ class QueryEngine:
         return query_messages.SdfReply(state.version, sdf.astype(np.float32, copy=False),
                                        grad.astype(np.float32, copy=False) if req.gradient else None, coll, observed,
                                        baked, state.epoch, unknown, round(time.monotonic() - state.received, 3))
+
+    def _bake_trails(self, bk: BakedMap) -> bool:
+        """Does the bake trail the newest map by more than ``fresh_s`` (since the first newer
+        map arrived)? With ``fresh_s`` 0: whenever a newer map arrived."""
+        if self.fresh_s <= 0:
+            return True
+        return self.baker.lag()["behind_s"] > self.fresh_s
 
     def _staleness(self, baked: MapState, newest: MapState) -> "Staleness | None":
         """Which points the bake of ``baked`` may answer differently from ``newest`` (a submap
