@@ -203,7 +203,10 @@ def service_setup(cfg: ServiceConfig, name: str):
     """Logging for a service process and its stop event (``stop_event``)."""
     import logging
 
+    from .memory import cap_arenas
+
     logging.basicConfig(level=cfg.log_level, format=f"%(asctime)s {name} %(levelname)s %(message)s")
+    cap_arenas(2)  # a long-running process: freed memory is not kept in an arena per thread
     return stop_event(name)
 
 

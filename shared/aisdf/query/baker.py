@@ -22,11 +22,11 @@ import numpy as np
 import torch
 
 from ..baked import BakeConfig, BakedField, bake
+from ..memory import trim
 from ..structure.fusion import DEFAULT_FUSE_RADIUS
 from ..structure.surfel_types import Surfels
-from ..submaps.field import covering
 from .answer import served_answer
-from .changes import measured_changes, surfel_dirty
+from .changes import measured_changes, submaps_changed_at, surfel_dirty
 from .mapstate import MapState
 
 log = logging.getLogger(__name__)
@@ -147,6 +147,7 @@ class Baker:
             if cur is None or cur.state.order <= st.order:
                 self.baked = BakedMap(st, fld, ref)
         self.bakes += 1
+        trim()  # the bake's temporaries (and the previous field, once no reader holds it) back to the system
         self.last = {**fld.stats, "wall_s": round(time.perf_counter() - t, 3), "version": st.version,
                      "epoch": st.epoch}
         log.info("baked map version %d: %d blocks (%d fine), %d evaluations (%d reused), %.2f s, %.1f MB",
@@ -178,7 +179,8 @@ class Baker:
         else:
             if not old.submaps.grid.same_as(new.submaps.grid):
                 return None, new.surfels
-            changed, grid, cells = new.submaps.changed_since(old.submaps), new.submaps.grid, set(new.submaps.submaps)
+            changed, grid = new.submaps.changed_since(old.submaps), new.submaps.grid
+            cells, old_cells = set(new.submaps.submaps), set(old.submaps.submaps)
         grow = self.fuse_radius + 0.05
         near_changed_surfel, ref = surfel_dirty(baked.surfel_ref, new.surfels, self.surfel_tol, grow)
         moved = measured_changes(old.submaps, new.submaps, changed) if grid is not None else None
@@ -188,8 +190,7 @@ class Baker:
             if moved is not None:
                 d |= np.isfinite(moved.distance(points, within=grow))  # a measured point counts within fuse_radius
             if grid is not None:
-                covered, touched = covering(grid, (cells, changed), points)
-                d |= ~covered | touched  # not covered: answered by the nearest submap, which depends on the whole set
+                d |= submaps_changed_at(grid, cells, old_cells, changed, points)
             return d
 
         return dirty, ref

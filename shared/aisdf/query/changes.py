@@ -142,3 +142,28 @@ def measured_changes(old, new, cells) -> MeasuredPoints | None:
         moved.append(both[idx[counts == 1]])  # in one of the two only
     moved = [m for m in moved if len(m)]
     return MeasuredPoints(np.concatenate(moved)) if moved else None
+
+
+def submaps_changed_at(grid, new_cells, old_cells, changed, points: np.ndarray) -> np.ndarray:
+    """(N,) bool: the points whose blended answer may differ between two submap sets on
+    ``grid`` (cells ``old_cells`` and ``new_cells``) that differ in the submaps of ``changed``
+    (added, replaced or gone). The blend at a point depends only on the submaps whose
+    extended boxes hold it; a point no submap holds is answered by the nearest submap (the
+    nearest in either set being a changed one is when that may differ)."""
+    from ..submaps.field import covering, nearest_cell
+
+    changed = set(changed)
+    covered, touched = covering(grid, (set(new_cells), changed), points)
+    out = touched.copy()
+    rest = np.flatnonzero(~covered & ~touched)
+    if len(rest) and changed:
+        near_new = nearest_cell(grid, list(new_cells), points[rest]) if new_cells else []
+        near_old = nearest_cell(grid, list(old_cells), points[rest]) if old_cells else []
+        hit = np.zeros(len(rest), bool)
+        for near in (near_new, near_old):
+            if len(near):
+                hit |= np.fromiter((c in changed for c in near), bool, len(rest))
+        if not new_cells or not old_cells:
+            hit[:] = True
+        out[rest] = hit
+    return out

@@ -77,8 +77,8 @@ class MapState:
 class Staleness:
     """Where a bake of the map ``baked`` may answer differently from the newer map ``newest``:
     inside the extended boxes of the submaps that changed between them (the blend at a point
-    depends only on the submaps whose boxes hold it), at points no submap covers (answered by
-    the nearest submap, which may be a changed one), and within the fusion radius of measured
+    depends only on the submaps whose boxes hold it), at points no submap covers whose nearest
+    submap (in either map) is a changed one, and within the fusion radius of measured
     points that changed (a measured point caps answers that far); everywhere when the two
     maps are of different mapper incarnations or grids."""
 
@@ -106,11 +106,10 @@ class Staleness:
             return np.ones(len(pts), bool)
         if not self.changed:
             return np.zeros(len(pts), bool)
-        from ..submaps.field import covering
+        from .changes import submaps_changed_at
 
-        sset = self.newest.submaps
-        covered, touched = covering(sset.grid, (set(sset.submaps), self.changed), pts)
-        out = touched | ~covered
+        new, old = self.newest.submaps, self.baked.submaps
+        out = submaps_changed_at(new.grid, set(new.submaps), set(old.submaps), self.changed, pts)
         if self.moved is not None and (~out).any():
             rest = np.flatnonzero(~out)
             out[rest] = np.isfinite(self.moved.distance(pts[rest], within=self.radius))
