@@ -26,7 +26,7 @@ from ..memory import trim
 from ..structure.fusion import DEFAULT_FUSE_RADIUS
 from ..structure.surfel_types import Surfels
 from .answer import served_answer
-from .changes import measured_changes, submaps_changed_at, surfel_dirty
+from .changes import measured_changes, measured_dirty, submaps_changed_at, surfel_dirty
 from .mapstate import MapState
 
 log = logging.getLogger(__name__)
@@ -187,8 +187,8 @@ class Baker:
 
         def dirty(points: np.ndarray) -> np.ndarray:
             d = near_changed_surfel(points)
-            if moved is not None:
-                d |= np.isfinite(moved.distance(points, within=grow))  # a measured point counts within fuse_radius
+            if moved is not None:  # a measured point counts within fuse_radius, where it is the nearest
+                d |= measured_dirty(moved, new.measured, points, grow)
             if grid is not None:
                 d |= submaps_changed_at(grid, cells, old_cells, changed, points)
             return d

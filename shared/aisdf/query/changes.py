@@ -144,6 +144,25 @@ def measured_changes(old, new, cells) -> MeasuredPoints | None:
     return MeasuredPoints(np.concatenate(moved)) if moved else None
 
 
+def measured_dirty(moved: MeasuredPoints | None, held: MeasuredPoints | None, points: np.ndarray, grow: float,
+                   eps: float = 1e-3) -> np.ndarray:
+    """(N,) bool: where the nearest measured point may differ between two maps whose measured
+    points differ by ``moved`` (``measured_changes``: in one map only) and of which the newer
+    holds ``held``. The answer depends on the measured points through the nearest one, and
+    only within the fusion radius (``grow`` is that radius, or more), so a point is dirty only
+    when a moved point is within ``grow`` of it and no farther than the nearest held point (+
+    ``eps``): elsewhere the same unchanged point is the nearest before and after."""
+    p = np.asarray(points, np.float64).reshape(-1, 3)
+    if moved is None or not len(p):
+        return np.zeros(len(p), bool)
+    d_moved = moved.distance(p, within=grow)
+    out = np.isfinite(d_moved)
+    idx = np.flatnonzero(out)
+    if len(idx) and held is not None and len(held):
+        out[idx] = d_moved[idx] <= held.distance(p[idx], within=grow) + eps
+    return out
+
+
 def submaps_changed_at(grid, new_cells, old_cells, changed, points: np.ndarray) -> np.ndarray:
     """(N,) bool: the points whose blended answer may differ between two submap sets on
     ``grid`` (cells ``old_cells`` and ``new_cells``) that differ in the submaps of ``changed``

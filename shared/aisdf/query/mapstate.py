@@ -79,7 +79,8 @@ class Staleness:
     inside the extended boxes of the submaps that changed between them (the blend at a point
     depends only on the submaps whose boxes hold it), at points no submap covers whose nearest
     submap (in either map) is a changed one, and within the fusion radius of measured
-    points that changed (a measured point caps answers that far); everywhere when the two
+    points that changed where one is the nearest measured point (a measured point caps
+    answers that far, through the nearest); everywhere when the two
     maps are of different mapper incarnations or grids."""
 
     baked: MapState
@@ -111,8 +112,10 @@ class Staleness:
         new, old = self.newest.submaps, self.baked.submaps
         out = submaps_changed_at(new.grid, set(new.submaps), set(old.submaps), self.changed, pts)
         if self.moved is not None and (~out).any():
+            from .changes import measured_dirty
+
             rest = np.flatnonzero(~out)
-            out[rest] = np.isfinite(self.moved.distance(pts[rest], within=self.radius))
+            out[rest] = measured_dirty(self.moved, self.newest.measured, pts[rest], self.radius)
         return out
 
 
