@@ -13,6 +13,7 @@ import torch
 from aisdf import protocol, query_messages
 from aisdf.network import SDFNetwork
 from aisdf.submaps.field import covering, nearest_cell
+from aisdf.query.engine import QueryEngine
 from helpers.submap_map import CELLS, band_points, engine_of, snapshot
 
 CHANGED = (1, -1, 0)
@@ -190,3 +191,25 @@ def test_within_fresh_s_the_bake_answers_alone_then_the_changed_regions_are_fres
     fresh = changed_region(e, pts)
     np.testing.assert_allclose(beyond.sdf[fresh], exact.sdf[fresh], atol=1e-6)
     np.testing.assert_array_equal(beyond.sdf[~fresh], before.sdf[~fresh])
+
+
+def test_space_the_bake_lacks_is_answered_from_the_newest_map_at_once(submap_map):
+    """A submap the bake's map does not have (space mapped for the first time) is answered from
+    the newest map even within ``fresh_s``; the rest of the reply is the baked map's."""
+    m = submap_map
+    e = QueryEngine(device="cpu", fuse_radius=0.5, fresh_s=60)
+    new_cell = CELLS[-1]
+    for c in CELLS[:-1]:
+        assert e.set_submap(m["snaps"][c])
+    e.bake_now()
+    pts = band_points(m, 3000, np.random.default_rng(10))
+    before = ask(e, pts, gradient=False)
+    assert e.set_submap(snapshot(m["nets"][new_cell], m["grid"], new_cell, 2, m["observed"][new_cell]))
+    after = ask(e, pts, gradient=False)
+    exact = ask(e, pts, exact=True, gradient=False)
+    sset = e.state.submaps
+    covered, touched = covering(sset.grid, (set(sset.submaps), [new_cell]), pts)
+    assert touched.mean() > 0.1
+    np.testing.assert_allclose(after.sdf[touched], exact.sdf[touched], atol=1e-6)
+    assert np.abs(before.sdf[touched] - exact.sdf[touched]).max() > 0.01  # the bake had no such submap
+    assert after.map_version == 1  # within fresh_s: the baked map answers, with the new space added

@@ -131,6 +131,9 @@ def add_arguments(p) -> None:
                    "(default served: query/sdf's default for the mapper; the table shows the others)")
     p.add_argument("--threads", type=int, help="torch threads")
     p.add_argument("--out", help="results folder (default runs/bench-scaling)")
+    p.add_argument("--served", action="store_true", help="then walk each scene through the real query service and "
+                   "mapper over Zenoh (aisdf bench served): what planners get, beside the newest map's exact answer")
+    p.add_argument("--served-only", action="store_true", help="only the walk through the real services")
     p.add_argument("--training", type=_json_map, help="training overrides over the preset (for submaps, over its "
                    "SUBMAP_PRESETS entry too), JSON, e.g. '{\"network\": {\"width\": 128}, \"lr_settle\": null}'")
 
@@ -155,6 +158,14 @@ def config_from_args(args) -> ScalingConfig:
 
 
 def main(args) -> None:
-    res = run(config_from_args(args))
-    print(report(res))
-    print(f"results in {Path(res['config']['out']) / 'scaling.json'} ({res['wall_s']:.0f} s)")
+    cfg = config_from_args(args)
+    if not getattr(args, "served_only", False):
+        res = run(cfg)
+        print(report(res))
+        print(f"results in {Path(res['config']['out']) / 'scaling.json'} ({res['wall_s']:.0f} s)")
+    if getattr(args, "served", False) or getattr(args, "served_only", False):
+        from .served import main as served_main
+
+        served_main(["--scenes", *cfg.scenes, "--keyframes", str(cfg.keyframes), "--period-s", str(cfg.period_s),
+                     "--tail-s", str(cfg.tail_s), "--preset", cfg.preset, "--seed", str(cfg.seed),
+                     "--width", str(cfg.W), "--height", str(cfg.H), "--out", str(Path(cfg.out) / "served")])

@@ -367,7 +367,7 @@ class QueryEngine:
                 sdf[out] = s2
                 if req.gradient:
                     grad[out] = g2
-            stale = self._staleness(bk.state, newest) if self._bake_trails(bk) else None
+            stale = self._staleness(bk.state, newest, added_only=not self._bake_trails(bk))
             if stale is not None:  # regions the newest map changed since the bake: from the newest map
                 fresh = stale.points(np.asarray(pts))
                 if fresh.any():
@@ -375,7 +375,9 @@ class QueryEngine:
                     sdf[fresh] = s2
                     if req.gradient:
                         grad[fresh] = g2
-                state = newest
+                if stale.everywhere or not stale.added_only:
+                    state = newest  # every value is the newest map's (up to the bake's accuracy)
+                # else: the bake's map answers (within fresh_s), with the space it lacked from the newest
             baked = True
         else:
             state = newest
@@ -408,17 +410,19 @@ class QueryEngine:
             return True
         return self.baker.lag()["behind_s"] > self.fresh_s
 
-    def _staleness(self, baked: MapState, newest: MapState) -> "Staleness | None":
+    def _staleness(self, baked: MapState, newest: MapState, added_only: bool = False) -> "Staleness | None":
         """Which points the bake of ``baked`` may answer differently from ``newest`` (a submap
-        map: the regions of the submaps that changed since, ``Staleness``), or None when the
-        bake answers for the newest map (the same field), or for a one-network map (a new
-        network changes every point: the bake answers, and ``map_age_s`` says how old it is)."""
+        map: the regions of the submaps that changed since, or with ``added_only`` of those
+        the bake's map does not have yet, ``Staleness``), or None when the bake answers for the
+        newest map (the same field), or for a one-network map (a new network changes every
+        point: the bake answers, and ``map_age_s`` says how old it is)."""
         if baked is newest or newest.submaps is None or baked.same_field(newest):
             return None
         cached = self._stale
-        if cached is not None and cached.baked is baked and cached.newest is newest:
+        if (cached is not None and cached.baked is baked and cached.newest is newest
+                and cached.added_only == added_only):
             return cached
-        st = Staleness.between(baked, newest, self.fuse_radius)
+        st = Staleness.between(baked, newest, self.fuse_radius, added_only)
         self._stale = st
         return st
 

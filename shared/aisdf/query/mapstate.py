@@ -90,15 +90,19 @@ class Staleness:
     moved: MeasuredPoints | None = None
     radius: float = 0.0
 
+    added_only: bool = False
+
     @classmethod
-    def between(cls, baked: MapState, newest: MapState, radius: float) -> "Staleness":
+    def between(cls, baked: MapState, newest: MapState, radius: float, added_only: bool = False) -> "Staleness":
+        """``added_only``: only the submaps the bake's map does not have (space the robot has
+        just mapped for the first time), not those that changed since."""
         a, b = baked.submaps, newest.submaps
         if a is None or b is None or baked.epoch != newest.epoch or not a.grid.same_as(b.grid):
-            return cls(baked, newest, True)
+            return cls(baked, newest, True, added_only=added_only)
         from .changes import measured_changes
 
-        changed = tuple(b.changed_since(a))
-        return cls(baked, newest, False, changed, measured_changes(a, b, changed), radius)
+        changed = tuple(c for c in b.changed_since(a) if not added_only or c not in a.submaps)
+        return cls(baked, newest, False, changed, measured_changes(a, b, changed), radius, added_only)
 
     def points(self, pts: np.ndarray) -> np.ndarray:
         """(N,) bool: the points to answer from the newest map."""
