@@ -93,7 +93,8 @@ def walk_scene(name: str, args, out: Path, say) -> dict:
     ns = f"aisdf/bench-served-{name}"
     mapper_args = ["--preset", args.preset] + (["--mapper", args.mapper] if args.mapper else [])
     rec: dict = {"scene": name, "keyframes": n, "eval_points": len(pts), "samples": [], "planner": {}}
-    with Stack(services=("query", "mapper"), namespace=ns, args={"mapper": mapper_args},
+    query_args = [x for kv in args.query_set for x in ("--set", kv)]
+    with Stack(services=("query", "mapper"), namespace=ns, args={"mapper": mapper_args, "query": query_args},
                log_dir=out / "logs" / name) as st, SdfClient(ns, zenoh=st.client_zenoh, timeout=60.0) as client:
         session = client._session
         qpid = st.procs["query"].pid
@@ -186,7 +187,8 @@ def walk_scene(name: str, args, out: Path, say) -> dict:
 def report(res: dict) -> str:
     lines = [f"Served answers while the map grows: {res['keyframes']} keyframes, one per {res['period_s']:g} s, then "
              f"{res['tail_s']:g} s; the query service and the mapper (preset {res['preset']}, mapper "
-             f"{res['mapper'] or 'default'}) on this machine over Zenoh; {res['date']}.", ""]
+             f"{res['mapper'] or 'default'}{'; query ' + ', '.join(res['query_set']) if res['query_set'] else ''}) on this "
+             f"machine over Zenoh; {res['date']}.", ""]
     for rec in res["scenes"]:
         lines += [f"{rec['scene']}: {rec['eval_points']:,} points, {rec['mapper_keyframes']} keyframes in the map, "
                   f"{rec['mapper_steps']} training steps", "",
@@ -224,6 +226,8 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--n-points", type=int, default=50_000, help="whole-map evaluation points per sample")
     p.add_argument("--preset", default="cpu")
     p.add_argument("--mapper", choices=["submaps", "single"], help="the mapper (default: the service's, submaps)")
+    p.add_argument("--query-set", action="append", default=[], metavar="KEY=VALUE",
+                   help="a query service setting (its --set), e.g. fresh_s=0; repeatable")
     p.add_argument("--width", type=int, default=160)
     p.add_argument("--height", type=int, default=120)
     p.add_argument("--seed", type=int, default=0)
@@ -233,7 +237,7 @@ def main(argv: list[str] | None = None) -> None:
     out.mkdir(parents=True, exist_ok=True)
     say = lambda s: print(s, flush=True)  # noqa: E731
     res = {"date": time.strftime("%Y-%m-%d"), "keyframes": a.keyframes, "period_s": a.period_s, "tail_s": a.tail_s,
-           "preset": a.preset, "mapper": a.mapper, "scenes": []}
+           "preset": a.preset, "mapper": a.mapper, "query_set": a.query_set, "scenes": []}
     t = time.time()
     for name in a.scenes:
         say(f"{name}: {a.keyframes} keyframes, one per {a.period_s:g} s, then {a.tail_s:g} s")
