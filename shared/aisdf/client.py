@@ -12,6 +12,9 @@ Protocol errors come back as :class:`aisdf.protocol.ProtocolError` with ``.code`
 
 from __future__ import annotations
 
+import threading
+import time
+
 import numpy as np
 
 from . import keys, protocol, query_messages, transport
@@ -123,3 +126,33 @@ class SdfClient:
     def weights(self, timeout: float = 2.0) -> protocol.WeightSnapshot | None:
         msg = transport.get_latest(self._session, self._key(keys.MAP_WEIGHTS), timeout)
         return None if msg is None else protocol.WeightSnapshot.from_msg(msg)
+
+
+class MapArrivals:
+    """When each map version arrived here: a subscriber on ``map/index`` (submaps) and
+    ``map/weights`` (one network) of the namespace ``ns``. ``lag(version)``: how far a reply
+    of that map version trails the newest map (seconds since a newer one arrived; 0 when none
+    did) — what the benchmarks and the demo measure answers by."""
+
+    def __init__(self, session, ns: str):
+        self.first: dict[int, float] = {}
+        self.lock = threading.Lock()
+        self._subs = [session.declare_subscriber(keys.key(ns, k), self._on) for k in (keys.MAP_INDEX, keys.MAP_WEIGHTS)]
+
+    def _on(self, sample) -> None:
+        t = time.monotonic()
+        try:
+            v = int(protocol.unpack(transport.payload_bytes(sample.payload))["version"])
+        except Exception:  # noqa: BLE001 - a malformed message is not a version
+            return
+        with self.lock:
+            self.first.setdefault(v, t)
+
+    def lag(self, version: int, now: float) -> float:
+        with self.lock:
+            newer = [t for v, t in self.first.items() if v > version]
+        return max(0.0, now - min(newer)) if newer else 0.0
+
+    def close(self) -> None:
+        for s in self._subs:
+            s.undeclare()

@@ -103,6 +103,9 @@ def env_overrides(model: type[BaseModel], environ: Mapping[str, str] | None = No
         if not name.startswith(ENV_PREFIX) or name in ("AISDF_DATA",):
             continue
         path = name[len(ENV_PREFIX):].lower().split("__")
+        if len(path) == 1 and path[0] in getattr(model, "LEGACY_KEYS", ()):  # read by the model's own validator
+            out[path[0]] = parse_value(raw)
+            continue
         # Only paths that exist in the model.
         cur: Any = model
         ok = True

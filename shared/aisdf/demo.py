@@ -24,7 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from . import keys, protocol, transport
-from .client import SdfClient
+from .client import MapArrivals, SdfClient
 from .collision import chomp_cost
 from .config import PARENT_ENV
 from .stack import Stack, endpoint, free_port, wait_for
@@ -77,15 +77,14 @@ def viewer_up(session, namespace: str) -> bool:
     return False
 
 
-def answer_lag(client, seq, row: dict, first_seen: dict, rng) -> dict:
-    """A planner's request of 1,000 points now: how far its answer trails the newest map the
-    mapper has published (seconds since the first version newer than the reply's was seen; 0
-    when the reply is of the newest), and the reply's ``map_age_s`` (protocol 1.7)."""
+def answer_lag(client, seq, row: dict, published, rng) -> dict:
+    """A planner's request of 1,000 points now: how far its answer trails the newest map
+    (seconds since a map newer than the reply's arrived, ``published``: a
+    ``client.MapArrivals`` subscriber; 0 when the reply is of the newest), and the
+    reply's ``map_age_s`` (protocol 1.7)."""
     now = time.monotonic()
-    first_seen.setdefault(row["map_version"], now)
     r = client.query(eval_points_from(seq, row["frames"], 1000, rng))
-    newer = [t for v, t in first_seen.items() if v > r.map_version]
-    return {"answer_version": r.map_version, "answer_lag_s": round(now - min(newer), 3) if newer else 0.0,
+    return {"answer_version": r.map_version, "answer_lag_s": round(published.lag(r.map_version, now), 3),
             "map_age_s": r.map_age_s}
 
 
@@ -156,7 +155,7 @@ def run(duration: float = 180.0, out: str | Path = "runs/demo", building: str = 
                 stack.start(["frontend"])
             t0 = time.monotonic()
             last_eval = 0.0
-            first_seen: dict[int, float] = {}  # mapper version -> when the demo first saw it published
+            published = MapArrivals(session, ns)  # when each map version arrived
             while not stop.is_set() and time.monotonic() - t0 < duration:
                 stop.wait(1.0)
                 for name, p in stack.procs.items():
@@ -175,7 +174,7 @@ def run(duration: float = 180.0, out: str | Path = "runs/demo", building: str = 
                        "baked_version": qi.get("baked_version"),
                        "bake_lag_s": (qi.get("lag") or {}).get("bake_behind_s")}
                 if row["map_version"]:
-                    row.update(answer_lag(client, seq, row, first_seen, rng))
+                    row.update(answer_lag(client, seq, row, published, rng))
                 if row["map_version"] and el - last_eval >= 10:
                     pts = eval_points_from(seq, row["frames"], n_eval, rng)
                     r = client.query(pts)

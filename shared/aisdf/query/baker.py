@@ -130,7 +130,7 @@ class Baker:
                 self._warm(st)
                 with self._lock:
                     if self.baked is cur:
-                        self.baked = BakedMap(st, cur.field)
+                        self.baked = BakedMap(st, cur.field, cur.surfel_ref)
             return self.baked
         t = time.perf_counter()
         dirty, ref = self._dirty(cur, st) if cur is not None else (None, st.surfels)

@@ -79,7 +79,7 @@ class QueryEngine:
         self._surfels: tuple[tuple[int, int], Surfels] | None = None
         self._lock = threading.Lock()  # serialises writers only; readers take the reference
         self.use_measured = bool(measured)  # protocol 1.4: fused answers use the submaps' measured points
-        self._stale: Staleness | None = None  # the newest bake's staleness against the newest map (a cache)
+        self._stale: tuple | None = None  # ((bake, newest map, added_only), Staleness): the newest pair's
         self.fresh_s = float(fresh_s)  # the bake answers alone while it trails the newest map by at most this
         self.baker = Baker(self._field, lambda: self._state, self.device, chunk_points, fuse_radius, bake_config,
                            bake_threads, bake_duty, bake_nice, surfel_tol, enabled=bake)
@@ -367,17 +367,17 @@ class QueryEngine:
                 sdf[out] = s2
                 if req.gradient:
                     grad[out] = g2
-            stale = self._staleness(bk.state, newest, added_only=not self._bake_trails(bk))
+            stale = self._staleness(bk, newest, added_only=not self._bake_trails(bk))
             if stale is not None:  # regions the newest map changed since the bake: from the newest map
                 fresh = stale.points(np.asarray(pts))
                 if fresh.any():
-                    s2, g2 = self._network_answer(newest, np.asarray(pts)[fresh], "fused", req.gradient)
+                    s2, g2 = self._network_answer(stale.answer, np.asarray(pts)[fresh], "fused", req.gradient)
                     sdf[fresh] = s2
                     if req.gradient:
                         grad[fresh] = g2
-                if stale.everywhere or not stale.added_only:
-                    state = newest  # every value is the newest map's (up to the bake's accuracy)
-                # else: the bake's map answers (within fresh_s), with the space it lacked from the newest
+                # the newest map's, up to the bake's accuracy (or within fresh_s the baked map with
+                # the space it lacked): version, observed space and age are that map's
+                state = stale.answer
             baked = True
         else:
             state = newest
@@ -410,20 +410,22 @@ class QueryEngine:
             return True
         return self.baker.lag()["behind_s"] > self.fresh_s
 
-    def _staleness(self, baked: MapState, newest: MapState, added_only: bool = False) -> "Staleness | None":
-        """Which points the bake of ``baked`` may answer differently from ``newest`` (a submap
-        map: the regions of the submaps that changed since, or with ``added_only`` of those
-        the bake's map does not have yet, ``Staleness``), or None when the bake answers for the
-        newest map (the same field), or for a one-network map (a new network changes every
-        point: the bake answers, and ``map_age_s`` says how old it is)."""
+    def _staleness(self, bk: BakedMap, newest: MapState, added_only: bool = False) -> "Staleness | None":
+        """Which points the bake ``bk`` may answer differently from ``newest`` (a submap map:
+        the regions that changed since, or with ``added_only`` the submaps its map does not
+        have yet; ``Staleness``), or None when the bake answers for the newest map (the same
+        field), or for a one-network map (a new network changes every point: the bake
+        answers, and ``map_age_s`` says how old it is)."""
+        baked = bk.state
         if baked is newest or newest.submaps is None or baked.same_field(newest):
             return None
+        key = (bk, newest, added_only)
         cached = self._stale
-        if (cached is not None and cached.baked is baked and cached.newest is newest
-                and cached.added_only == added_only):
-            return cached
-        st = Staleness.between(baked, newest, self.fuse_radius, added_only)
-        self._stale = st
+        if cached is not None and all(x is y for x, y in zip(cached[0], key)):
+            return cached[1]
+        st = Staleness.between(baked, newest, self.fuse_radius, added_only, bk.surfel_ref, self.baker.surfel_tol,
+                               self.baker.config.block)
+        self._stale = (key, st)
         return st
 
     def answer_mesh(self, req: query_messages.MeshRequest) -> query_messages.MeshReply:

@@ -75,51 +75,72 @@ class MapState:
 
 @dataclass(frozen=True)
 class Staleness:
-    """Where a bake of the map ``baked`` may answer differently from the newer map ``newest``:
-    inside the extended boxes of the submaps that changed between them (the blend at a point
-    depends only on the submaps whose boxes hold it), at points no submap covers whose nearest
-    submap (in either map) is a changed one, and within the fusion radius of measured
-    points that changed where one is the nearest measured point (a measured point caps
-    answers that far, through the nearest); everywhere when the two
-    maps are of different mapper incarnations or grids."""
+    """Where a bake of the map ``baked`` may answer differently from the newer map ``newest``,
+    and the map those points are answered from (``answer``). A point's answer changed where
+    it lies in the extended box of a submap that changed (the blend at a point depends only
+    on the submaps whose boxes hold it), where no submap holds it and its nearest submap (in
+    either map) changed, where a changed measured point lies within the fusion radius and no
+    farther than the nearest measured point (the answer depends on them through the nearest),
+    and where a surfel that moved more than the bake's tolerance is within the fusion radius
+    and no farther than the nearest unchanged one (``changes.surfel_dirty``); everywhere when
+    the two maps are of different mapper incarnations or grids.
+
+    ``added_only``: only the submaps the bake's map does not have (space mapped for the first
+    time); ``answer`` is then the bake's map with those submaps added (its version the
+    bake's), else the newest map."""
 
     baked: MapState
     newest: MapState
-    everywhere: bool
+    answer: MapState
+    everywhere: bool = False
     changed: tuple = ()
     moved: MeasuredPoints | None = None
     radius: float = 0.0
-
     added_only: bool = False
+    surfels_moved: object = None  # points -> bool (changes.surfel_dirty), or None
 
     @classmethod
-    def between(cls, baked: MapState, newest: MapState, radius: float, added_only: bool = False) -> "Staleness":
-        """``added_only``: only the submaps the bake's map does not have (space the robot has
-        just mapped for the first time), not those that changed since."""
+    def between(cls, baked: MapState, newest: MapState, radius: float, added_only: bool = False,
+                surfel_ref: Surfels | None = None, surfel_tol: float = 0.0, align: float = 0.2) -> "Staleness":
+        from .changes import measured_changes, surfel_dirty
+
         a, b = baked.submaps, newest.submaps
         if a is None or b is None or baked.epoch != newest.epoch or not a.grid.same_as(b.grid):
-            return cls(baked, newest, True, added_only=added_only)
-        from .changes import measured_changes
-
+            return cls(baked, newest, newest, everywhere=True, added_only=added_only)
         changed = tuple(c for c in b.changed_since(a) if not added_only or c not in a.submaps)
-        return cls(baked, newest, False, changed, measured_changes(a, b, changed), radius, added_only)
+        if added_only:
+            if not changed:
+                return cls(baked, newest, baked, added_only=True)
+            subs = {**a.submaps, **{c: b.submaps[c] for c in changed}}
+            observed = union_observed([s.observed for s in subs.values()], align)
+            answer = MapState(baked.version, baked.step, None,
+                              observed.bounds if observed is not None else newest.bounds, newest.surfels,
+                              newest.surfel_version, baked.epoch, observed, baked.received, SubmapSet(b.grid, subs),
+                              union_measured(subs.values()))
+            moved_surfels = None  # the new space's surfels come with it; elsewhere the bake's map answers
+        else:
+            answer = newest
+            moved_surfels = surfel_dirty(surfel_ref, newest.surfels, surfel_tol, radius + 0.05)[0]
+        return cls(baked, newest, answer, False, changed, measured_changes(a, answer.submaps, changed), radius,
+                   added_only, moved_surfels)
 
     def points(self, pts: np.ndarray) -> np.ndarray:
-        """(N,) bool: the points to answer from the newest map."""
+        """(N,) bool: the points to answer from ``answer``."""
         pts = np.asarray(pts, np.float64).reshape(-1, 3)
         if self.everywhere:
             return np.ones(len(pts), bool)
-        if not self.changed:
-            return np.zeros(len(pts), bool)
-        from .changes import submaps_changed_at
+        from .changes import measured_dirty, submaps_changed_at
 
-        new, old = self.newest.submaps, self.baked.submaps
-        out = submaps_changed_at(new.grid, set(new.submaps), set(old.submaps), self.changed, pts)
-        if self.moved is not None and (~out).any():
-            from .changes import measured_dirty
-
+        out = np.zeros(len(pts), bool)
+        if self.changed:
+            new, old = self.answer.submaps, self.baked.submaps
+            out = submaps_changed_at(new.grid, set(new.submaps), set(old.submaps), self.changed, pts)
+        if self.surfels_moved is not None and (~out).any():
             rest = np.flatnonzero(~out)
-            out[rest] = measured_dirty(self.moved, self.newest.measured, pts[rest], self.radius)
+            out[rest] = self.surfels_moved(pts[rest])
+        if self.moved is not None and (~out).any():
+            rest = np.flatnonzero(~out)
+            out[rest] = measured_dirty(self.moved, self.answer.measured, pts[rest], self.radius)
         return out
 
 
