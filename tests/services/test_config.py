@@ -58,3 +58,17 @@ def test_invalid_cli_exits_with_message():
     assert "invalid configuration" in str(e.value)
     with pytest.raises(SystemExit):
         config_from_args(ServiceConfig, parse(["--config", "/nonexistent.yaml"]))
+
+
+def test_the_mapper_choice_is_spelled_mapper_and_the_old_switch_still_reads(tmp_path):
+    assert MapperConfig().mapper == "submaps"
+    assert build_config(MapperConfig, overrides={"mapper": "single"}, environ={}).mapper == "single"
+    f = tmp_path / "mapper.yaml"
+    f.write_text("submaps: false\n")  # a file written before 'mapper'
+    assert build_config(MapperConfig, f, environ={}).mapper == "single"
+    assert build_config(MapperConfig, environ={"AISDF_SUBMAPS": "false"}).mapper == "single"
+    assert build_config(MapperConfig, environ={"AISDF_SUBMAPS": "true"}).mapper == "submaps"
+    assert build_config(MapperConfig, environ={"AISDF_SUBMAPS": "false", "AISDF_MAPPER": "submaps"}).mapper == "submaps"
+    assert "submaps" not in env_overrides(QueryConfig, {"AISDF_SUBMAPS": "false"})  # the mapper's only
+    with pytest.raises(ValidationError):
+        MapperConfig(mapper="octree")
