@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any, ClassVar, Literal
 
 from pydantic import Field, model_validator
 
@@ -13,6 +13,8 @@ from aisdf.submaps.config import SubmapConfig
 
 class MapperConfig(ServiceConfig):
     """Settings of ``aisdf-mapper``."""
+
+    LEGACY_KEYS: ClassVar[tuple[str, ...]] = ("submaps",)  # before ``mapper`` (files, AISDF_SUBMAPS)
 
     preset: Literal["auto", "paper", "cpu"] = Field(
         "auto", description="training preset: paper = iSDF's numbers exactly; cpu = tuned for a 2-core CPU; "
