@@ -48,7 +48,7 @@ from ..submaps.grid import SubmapGrid, parse_cell_id
 from ..structure.surfel_types import Surfels
 from .answer import served_answer
 from .baker import Baker, BakedMap
-from .mapstate import MapState, Staleness, SubmapSet, SubmapSnapshot, union_measured, union_observed
+from .mapstate import MapState, Staleness, SubmapSet, SubmapSnapshot
 from .meshing import tiled_marching_cubes
 
 log = logging.getLogger(__name__)
@@ -206,21 +206,10 @@ class QueryEngine:
         return True
 
     def _submap_state(self, sset: SubmapSet, version: int, epoch: int, cur: MapState | None) -> MapState:
-        subs = list(sset.submaps.values())
-        observed = union_observed([s.observed for s in subs], self.baker.config.block)
-        boxes = [s.bounds for s in subs if s.bounds is not None]
-        if observed is not None:  # what was seen (a submap's bounds are its whole extended box)
-            bounds = observed.bounds
-        elif boxes:
-            bounds = np.stack([np.min([b[0] for b in boxes], 0), np.max([b[1] for b in boxes], 0)])
-        else:  # the extended boxes of the submaps
-            corners = np.concatenate([sset.grid.corners_W(s.cell, sset.grid.overlap_m) for s in subs])
-            bounds = np.stack([corners.min(0), corners.max(0)])
         sv, surf = self._surfels if self._surfels else ((0, -1), None)
         if sv[0] < epoch:  # surfels of an older mapper incarnation: not this map's
             surf, sv = None, (0, -1)
-        return MapState(version, sum(s.step for s in subs), None, bounds, surf, sv[1], epoch, observed,
-                        submaps=sset, measured=union_measured(subs))
+        return MapState.of_submaps(sset, version, epoch, surf, sv[1], self.baker.config.block)
 
     def set_index(self, idx: protocol.SubmapIndex) -> list[str] | None:
         """Take a ``map/index``: the ids of the submaps to get because the index lists them at
@@ -361,20 +350,17 @@ class QueryEngine:
         if req.source == "fused" and not req.exact and bk is not None:
             state = bk.state
             sdf, grad, covered = bk.field.query(pts, req.gradient)
-            if not covered.all():  # outside the bake: the network of the same map
-                out = ~covered
-                s2, g2 = self._network_answer(state, np.asarray(pts)[out], "fused", req.gradient)
-                sdf[out] = s2
-                if req.gradient:
-                    grad[out] = g2
             stale = self._staleness(bk, newest, added_only=not self._bake_trails(bk))
-            if stale is not None:  # regions the newest map changed since the bake: from the newest map
-                fresh = stale.points(np.asarray(pts))
-                if fresh.any():
-                    s2, g2 = self._network_answer(stale.answer, np.asarray(pts)[fresh], "fused", req.gradient)
-                    sdf[fresh] = s2
+            fresh = np.zeros(len(sdf), bool) if stale is None else stale.points(np.asarray(pts))
+            # Outside the bake: the network of the same map; in regions the newest map changed
+            # since the bake: that map's answer.
+            for where, st in ((~covered & ~fresh, bk.state), (fresh, None if stale is None else stale.answer)):
+                if where.any():
+                    s2, g2 = self._network_answer(st, np.asarray(pts)[where], "fused", req.gradient)
+                    sdf[where] = s2
                     if req.gradient:
-                        grad[fresh] = g2
+                        grad[where] = g2
+            if stale is not None:
                 # the newest map's, up to the bake's accuracy (or within fresh_s the baked map with
                 # the space it lacked): version, observed space and age are that map's
                 state = stale.answer

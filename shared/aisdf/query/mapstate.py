@@ -64,6 +64,25 @@ class MapState:
         return MapState(self.version, self.step, self.net, self.bounds, surfels, surfel_version, self.epoch,
                         self.observed, self.received, self.submaps, self.measured)
 
+    @classmethod
+    def of_submaps(cls, sset: "SubmapSet", version: int, epoch: int, surfels: Surfels | None, surfel_version: int,
+                   align: float, received: float | None = None) -> "MapState":
+        """The map of a submap set: the union of its submaps' observed space (its origin on a
+        multiple of ``align``, the bake's block) and of their measured points; its bounds
+        those of what was observed (else of the submaps' bounds, else of their extended boxes)."""
+        subs = list(sset.submaps.values())
+        observed = union_observed([s.observed for s in subs], align)
+        boxes = [s.bounds for s in subs if s.bounds is not None]
+        if observed is not None:  # what was seen (a submap's bounds are its whole extended box)
+            bounds = observed.bounds
+        elif boxes:
+            bounds = np.stack([np.min([b[0] for b in boxes], 0), np.max([b[1] for b in boxes], 0)])
+        else:  # the extended boxes of the submaps
+            corners = np.concatenate([sset.grid.corners_W(s.cell, sset.grid.overlap_m) for s in subs])
+            bounds = np.stack([corners.min(0), corners.max(0)])
+        return cls(version, sum(s.step for s in subs), None, bounds, surfels, surfel_version, epoch, observed,
+                   time.monotonic() if received is None else received, sset, union_measured(subs))
+
     def same_field(self, other: "MapState") -> bool:
         """Same implicit field and surfels (a bake of one is a bake of the other)."""
         if self.surfels is not other.surfels:
@@ -112,11 +131,8 @@ class Staleness:
             if not changed:
                 return cls(baked, newest, baked, added_only=True)
             subs = {**a.submaps, **{c: b.submaps[c] for c in changed}}
-            observed = union_observed([s.observed for s in subs.values()], align)
-            answer = MapState(baked.version, baked.step, None,
-                              observed.bounds if observed is not None else newest.bounds, newest.surfels,
-                              newest.surfel_version, baked.epoch, observed, baked.received, SubmapSet(b.grid, subs),
-                              union_measured(subs.values()))
+            answer = MapState.of_submaps(SubmapSet(b.grid, subs), baked.version, baked.epoch, newest.surfels,
+                                         newest.surfel_version, align, baked.received)
             moved_surfels = None  # the new space's surfels come with it; elsewhere the bake's map answers
         else:
             answer = newest
