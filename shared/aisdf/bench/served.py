@@ -36,7 +36,6 @@ import numpy as np
 from .. import keys, protocol, transport
 from ..client import MapArrivals, SdfClient
 from ..keyframes import keyframe_message
-from ..metrics import eval_points
 from ..stack import Stack, wait_for
 
 
@@ -63,16 +62,16 @@ def _pcts(xs: list[float]) -> dict:
 
 
 def walk_scene(name: str, args, out: Path, say) -> dict:
-    from ..synthetic import PLANS, SyntheticSequence
-    from ..synthetic.trajectory import walk_duration
+    from .scaling_config import resolve
+    from .scaling_walk import scene_frames, whole_scorer
 
-    n = args.keyframes
-    fps = 1.0 if name not in PLANS else min(1.0, n / walk_duration(PLANS[name]()))
-    seq = SyntheticSequence(building=name, n_frames=n, H=args.height, W=args.width, fps=fps, seed=args.seed)
-    frames = [seq.frame(i) for i in range(n)]
-    pts = eval_points(frames, n_points=args.n_points, every=1, rng=np.random.default_rng([args.seed, 7]),
-                      far_margin=0.1)
-    gt = seq.gt_sdf(pts)
+    # The walk and the evaluation points of ``aisdf bench scaling`` with the same settings.
+    cfg = resolve("full", keyframes=args.keyframes, H=args.height, W=args.width, seed=args.seed,
+                  n_points=args.n_points)
+    seq, frames, _ = scene_frames(name, cfg)
+    n = len(frames)
+    scorer = whole_scorer(seq, frames, cfg)
+    pts, gt = scorer.points, scorer.gt
     planner_pts = pts[np.random.default_rng(1).choice(len(pts), min(1000, len(pts)), replace=False)]
     ns = f"aisdf/bench-served-{name}"
     mapper_args = ["--preset", args.preset] + (["--mapper", args.mapper] if args.mapper else [])
