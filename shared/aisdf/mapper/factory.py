@@ -11,8 +11,6 @@ from ..submaps.pipeline import SubmapPipeline
 from .interface import MAPPER_KINDS, Mapper
 from .single import MappingPipeline
 
-IMPLEMENTATIONS: dict[str, type] = {"submaps": SubmapPipeline, "single": MappingPipeline}
-
 
 def make_mapper(kind: str = "submaps", preset: str = "auto", training: dict[str, Any] | None = None,
                 atlanta: bool = True, surfel_mask: bool = True, surfel_loss: bool = True,

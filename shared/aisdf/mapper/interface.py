@@ -14,7 +14,7 @@ Arrays in, arrays out, messages as bytes: no Zenoh and no files here.
 
 from __future__ import annotations
 
-from typing import Any, Literal, Protocol, runtime_checkable
+from typing import Any, Protocol, runtime_checkable
 
 import numpy as np
 
@@ -25,7 +25,6 @@ from ..observed import ObservedSpace
 from ..structure.measured import MeasuredSurface
 from ..structure.surfel_types import Surfels
 
-MapperKind = Literal["submaps", "single"]
 MAPPER_KINDS: tuple[str, ...] = ("submaps", "single")  # the first is the default
 
 

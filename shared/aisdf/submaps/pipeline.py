@@ -337,12 +337,6 @@ class SubmapPipeline:
         once per submap): what a query service holding the whole map answers with."""
         return self.publisher.measured_points()
 
-    def submap_snapshot(self, sm: Submap, version: int, epoch: int = 0) -> protocol.WeightSnapshot:
-        return self.publisher.submap_snapshot(sm, version, epoch)
-
-    def index(self, version: int, epoch: int = 0) -> protocol.SubmapIndex:
-        return self.publisher.index(version, epoch)
-
     def map_messages(self, version: int, changed_only: bool = True, epoch: int = 0,
                      mark: bool = True) -> list[tuple[str, bytes]]:
         """``SubmapPublisher.map_messages``: the submaps that changed and are due, the index
