@@ -168,6 +168,40 @@ def test_dedup_and_versions_survive_a_crash(tmp_path):
     assert third.pipeline.n_keyframes == 5 and third.epoch > again.epoch
 
 
+def test_a_keyframe_is_on_disk_before_it_is_acknowledged(tmp_path, monkeypatch):
+    """The journal's promise: the record of every acknowledged keyframe was fsync'd first (a
+    power cut after the acknowledgement loses nothing the frontend stopped resending)."""
+    import os
+
+    from aisdf_mapper import journal
+
+    events = []
+    real_fsync = os.fsync
+
+    def fsync(fd):
+        events.append(("fsync", os.fstat(fd).st_size))
+        real_fsync(fd)
+
+    monkeypatch.setattr(journal.os, "fsync", fsync)
+    node = node_in(tmp_path)
+    put = node.session.put
+
+    def put_and_record(key, data, encoding=None):
+        if key.endswith("/" + keys.KEYFRAMES_ACK):
+            events.append(("ack", (tmp_path / JOURNAL_NAME).stat().st_size))
+        put(key, data, encoding)
+
+    node.session.put = put_and_record
+    for i in range(3):
+        node.on_keyframe(room_keyframe(i))
+    node._add_pending()
+    assert [a.frame_ids for a in node.session.acks()] == [[0, 1, 2]]
+    # three records, each fsync'd, then one acknowledgement of the whole file's contents
+    assert [e[0] for e in events] == ["fsync"] * 3 + ["ack"]
+    sizes = [e[1] for e in events]
+    assert sizes[0] < sizes[1] < sizes[2] == sizes[3]
+
+
 # ----------------------------------------------------------------------------- protocol 1.2 on the wire
 
 
