@@ -364,3 +364,34 @@ def test_engine_orders_maps_by_epoch_then_version(trained):
     assert not e.set_weights(old)
     rep = e.answer_sdf(query_messages.SdfRequest(np.zeros((3, 3))))
     assert (rep.map_epoch, rep.map_version) == (7, 2)
+
+
+def test_while_the_bake_lags_a_baked_reply_names_the_older_map_and_exact_the_newest(trained):
+    """A one-network map: a newer network changes every point, so until its bake is ready the
+    bake answers with the map it baked, and says so (its ``map_version``, an age that keeps
+    growing); ``exact`` answers from the newest map at once."""
+    import dataclasses
+
+    _, frames, snap, _ = trained
+    e = engine_with(trained)  # no background baker: the bake changes only by bake_now()
+    e.bake_now()
+    pts = frames[0]["T_WC"][:3, 3] + np.random.default_rng(3).uniform(-1.0, 1.0, (3000, 3))
+    before = e.answer_sdf(query_messages.SdfRequest(pts, gradient=True))
+    rng = np.random.default_rng(4)
+    moved = {k: v + 0.05 * np.abs(v).mean() * rng.standard_normal(v.shape).astype(v.dtype) for k, v in snap.state.items()}
+    assert e.set_weights(dataclasses.replace(snap, version=snap.version + 1, state=moved))
+    assert e.baked.state.version == snap.version  # the bake lags
+    baked = e.answer_sdf(query_messages.SdfRequest(pts, gradient=True))
+    exact = e.answer_sdf(query_messages.SdfRequest(pts, gradient=True, exact=True))
+    assert baked.baked and baked.map_version == snap.version and baked.map_age_s >= before.map_age_s
+    np.testing.assert_array_equal(baked.sdf, before.sdf)  # the old map's values, bit for bit
+    assert not exact.baked and exact.map_version == snap.version + 1 and exact.map_age_s <= baked.map_age_s
+    assert np.abs(exact.sdf - baked.sdf).mean() > 0.005  # the new network answers differently
+    lag = e.lag()
+    assert lag["versions"] == lag["bake_versions"] == 1 and lag["behind_s"] >= 0
+    e.bake_now()  # the bake catches up: now it answers for the newest map
+    after = e.answer_sdf(query_messages.SdfRequest(pts, gradient=True))
+    assert after.baked and after.map_version == snap.version + 1
+    diff = np.abs(after.sdf - exact.sdf)
+    assert diff.mean() < 0.005, diff.mean()
+    assert e.lag()["versions"] == 0
