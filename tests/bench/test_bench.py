@@ -1,4 +1,4 @@
-"""``aisdf bench``: the quick profile end to end, the real-time replay, the metrics'
+"""``aisdf bench``: the quick profile end to end (its errors near the measured figures), the real-time replay, the metrics'
 plumbing, and the 7-Scenes reference (labelled as a reference)."""
 
 from __future__ import annotations
@@ -72,14 +72,28 @@ def test_quick_tables_are_finite_for_every_method(quick):
     assert "iSDF" in md and "AiSDF (w. explicit map)" in md and "exact analytic SDF" in md
 
 
-def test_quick_errors_are_sane_on_the_synthetic_scene(quick):
-    """Voxblox-like map and iSDF against the exact SDF: a few cm, not tens."""
+# The quick profile's final figures (iterations mode: every run trains the same steps, and two
+# runs gave the same figures to the last digit) and the bounds held, about 2x each:
+# ``aisdf bench --quick --no-progress`` at 34be166 on 2026-12-05, 2 CPU cores:
+#                     SDF (cm)        collision          gradient cosine
+#   voxblox           3.71  < 8       0.0255 < 0.06      0.095 < 0.2
+#   isdf              4.87  < 10      0.0365 < 0.08      0.174 < 0.35
+#   aisdf             7.85  < 16      0.0578 < 0.12      0.199 < 0.4
+#   aisdf+explicit    7.60  < 16      0.0559 < 0.12      0.194 < 0.4
+QUICK_BOUNDS = {"voxblox": (8.0, 0.06, 0.2), "isdf": (10.0, 0.08, 0.35), "aisdf": (16.0, 0.12, 0.4),
+                "aisdf+explicit": (16.0, 0.12, 0.4)}
+
+
+def test_quick_errors_are_near_the_measured_figures(quick):
+    """Every method against the exact SDF: within about 2x of what the quick profile measured
+    (above), the project's own rows included."""
     res = _load(quick, "results.json")
     final = res["scenes"][SCENE]["runs"][0]["final"]
-    for m in ("voxblox", "isdf"):
-        assert final[m]["sdf_error_cm"] < 25.0, final[m]
-        assert final[m]["collision_cost_error"] < 0.2
-        assert final[m]["gradient_cosine_distance"] < 0.6
+    assert set(final) == set(QUICK_BOUNDS)
+    for m, (sdf_cm, collision, gradient) in QUICK_BOUNDS.items():
+        assert final[m]["sdf_error_cm"] < sdf_cm, final[m]
+        assert final[m]["collision_cost_error"] < collision, final[m]
+        assert final[m]["gradient_cosine_distance"] < gradient, final[m]
         assert final[m]["n_points"] > 15_000
     over = res["scenes"][SCENE]["runs"][0]["over_time"]
     assert len(over) == 3 and over[-1]["frame"] == res["scenes"][SCENE]["frames"] - 1
