@@ -192,13 +192,25 @@ def check_surfel_map(s, room):
     assert set(np.unique(surf["direction"])) <= {-1, 0, 1}
 
 
+# Measured by ``pytest -s tests/e2e/test_e2e.py -k maps_the_synthetic`` at 34be166 on 2026-12-05
+# (2 CPU cores, shared with another job): served 1.01 cm, the network alone 6.50 cm, the exact
+# fused answer 0.91 cm (the README's full demo, 183 s: 0.84-0.98 cm). The bound is 2.5x that.
+DEMO_BOUND_CM = 2.5
+
+
 def test_demo_maps_the_synthetic_building(tmp_path):
     """The README's demo, shortened: three processes, live progress, artefacts, error bound."""
     r = subprocess.run([sys.executable, "-m", "aisdf.cli", "demo", "--duration", "75", "--out", str(tmp_path)],
                        capture_output=True, text=True, timeout=400)
     assert r.returncode == 0, r.stdout[-3000:] + r.stderr[-3000:]
     summary = json.loads((tmp_path / "summary.json").read_text())
-    assert summary["sdf_error_cm"] < 20.0, summary
+    figures = {k: summary[k] for k in ("sdf_error_cm", "sdf_error_implicit_cm", "sdf_error_fused_network_cm")}
+    print("demo, 75 s:", figures)
+    # The served answer (fused with the surfels and the measured points), measured 1.01 cm above;
+    # the network alone scores several times as much (6.5 cm), and with the served answer reduced to the
+    # network alone the demo scored 5.59 cm: both bounds fail then.
+    assert summary["sdf_error_cm"] < DEMO_BOUND_CM, figures
+    assert summary["sdf_error_cm"] < 0.6 * summary["sdf_error_implicit_cm"], figures
     assert summary["history"][-1]["keyframes"] > 5 and summary["history"][-1]["steps"] > 50
     assert (tmp_path / "demo.rrd").stat().st_size > 10_000
     assert (tmp_path / "mesh.ply").exists()
