@@ -60,3 +60,29 @@ def test_stream_synthetic_as_fast_as_possible():
     assert counts["frames"] == 60 and counts["keyframes"] == len(sent) >= 2
     kf = protocol.Keyframe.from_msg(protocol.unpack(protocol.pack(sent[0])))
     assert kf.depth.shape == (60, 80) and kf.frame_id == 0
+
+
+def test_without_a_mapper_the_frontend_waits_drain_timeout_s_for_acknowledgements_then_ends():
+    """The source done, what is held unacknowledged (no mapper ever came) is waited for
+    ``drain_timeout_s``, no longer: the frontend ends with them counted as pending."""
+    import threading
+    import time
+
+    from aisdf.config import ZenohOptions
+    from aisdf.stack import endpoint, free_port
+    from aisdf_frontend.main import main
+
+    cfg = FrontendConfig(namespace="aisdf/draintest", n_frames=30, realtime=False, width=80, height=60,
+                         drain_timeout_s=2.0,
+                         zenoh=ZenohOptions(mode="peer", listen=[endpoint(free_port())], multicast_scouting=False))
+    out, stop = {}, threading.Event()
+    t0 = time.monotonic()
+    th = threading.Thread(target=lambda: out.update(main(cfg, stop)), daemon=True)
+    th.start()
+    th.join(40.0)  # the drain (2 s) plus 30 frames and a session: seconds; 40 s only if it never ends
+    elapsed = time.monotonic() - t0
+    stop.set()
+    th.join(10.0)
+    assert out, "the frontend did not end after its drain timeout"
+    assert out["done"] and out["keyframes"] >= 2
+    assert elapsed >= cfg.drain_timeout_s  # it did wait for acknowledgements (none came)
