@@ -229,3 +229,72 @@ def test_planner_publishing_keyframes_or_maps_changes_nothing(deployment):
             q2 = wait_for(lambda: (lambda i: i if i["version"] == 10**9 else None)(info(d, "query")), 10,
                           what="the mapper identity's map at the query service")
         print(f"after the same map from the mapper identity: {q2['version']}")
+
+
+FORGED_M = 42.0
+# An impostor: another process (as on another machine) with an identity's Zenoh settings, that
+# declares query/sdf and answers every request with a forged reply (every distance 42 m: all
+# clear) a planner would steer by, until it is terminated. (Told apart by its distances, not its
+# map version: the test above leaves the real service with a forged map of version 10**9.)
+IMPOSTOR = """
+import sys, time
+from pathlib import Path
+import numpy as np
+from aisdf import keys, protocol, query_messages, transport
+from aisdf.config import ZenohOptions
+
+def on_query(q):
+    rep = query_messages.SdfReply(1, np.full(8, FORGED, np.float32))
+    q.reply(q.key_expr, protocol.pack(rep.to_msg()), encoding=transport.ENCODING)
+
+with transport.open_session(ZenohOptions(config_file=Path(sys.argv[1]))) as s:
+    decl = s.declare_queryable(keys.key(sys.argv[2], keys.QUERY_SDF), on_query)
+    print("declared", flush=True)
+    time.sleep(600)
+""".replace("FORGED", repr(FORGED_M))
+
+
+def impostor(conf: Path) -> subprocess.Popen:
+    p = subprocess.Popen([sys.executable, "-c", IMPOSTOR, str(conf), NS], stdout=subprocess.PIPE, text=True)
+    assert p.stdout.readline().strip() == "declared"
+    return p
+
+
+def all_answers(session) -> list[str]:
+    """Every reply to one query/sdf request, from every queryable: "forged" or "real"."""
+    import zenoh
+
+    req = protocol.pack(query_messages.SdfRequest(np.zeros((8, 3))).to_msg())
+    out = []
+    for r in session.get(keys.key(NS, keys.QUERY_SDF), payload=req, encoding=transport.ENCODING,
+                         target=zenoh.QueryTarget.ALL, consolidation=zenoh.ConsolidationMode.NONE, timeout=5.0):
+        if r.ok is not None:
+            sdf = query_messages.SdfReply.from_msg(protocol.unpack(transport.payload_bytes(r.ok.payload))).sdf
+            out.append("forged" if np.all(sdf == FORGED_M) else "real")
+    return out
+
+
+def test_only_the_query_identity_can_answer_planners(deployment):
+    """A planner or a monitor that declares query/sdf to answer in the query service's place
+    reaches nobody: a planner hears only the real service. The same impostor with the query
+    identity is heard (so the check can fail)."""
+    conf = deployment["conf"]
+    with transport.open_session(opts(conf["planner"])) as asker:
+        wait_for(lambda: sdf_answer(asker), 120, period=1.0, what="a planner's query/sdf answer")
+        for identity in ("planner", "monitor"):
+            p = impostor(conf[identity])
+            try:
+                time.sleep(1.0)  # its declaration would have reached the router and the planner
+                heard = all_answers(asker) + all_answers(asker)
+            finally:
+                p.kill()
+                p.wait()
+            print(f"a {identity} answering query/sdf: the planner heard {heard}")
+            assert heard == ["real", "real"], (identity, heard)
+        p = impostor(conf["query"])
+        try:
+            wait_for(lambda: "forged" in all_answers(asker), 15, period=0.5,
+                     what="the query identity's impostor at the planner")
+        finally:
+            p.kill()
+            p.wait()
