@@ -34,6 +34,23 @@ def small_map():
     return seq, frames, p.weight_snapshot(1), p.surfel_map(1)
 
 
+def unknown_distance_brute_force(grid, pts: np.ndarray) -> np.ndarray:
+    """Distance from each point to the nearest unobserved space of an ObservedGrid: the cubes
+    of its unobserved voxels and everything outside it (0 for a point in unobserved space)."""
+    occ = np.asarray(grid.occ)
+    lo = np.asarray(grid.origin, np.float64)
+    hi = lo + np.array(occ.shape) * grid.voxel
+    centres = lo + (np.argwhere(~occ) + 0.5) * grid.voxel
+    out = np.zeros(len(pts))
+    for n, p in enumerate(np.asarray(pts, np.float64)):
+        ijk = np.floor((p - lo) / grid.voxel).astype(int)
+        if np.any(ijk < 0) or np.any(ijk >= occ.shape) or not occ[tuple(ijk)]:
+            continue  # in unobserved space
+        to_cube = np.linalg.norm(np.maximum(np.abs(centres - p) - 0.5 * grid.voxel, 0.0), axis=1).min()
+        out[n] = min(to_cube, (p - lo).min(), (hi - p).min())
+    return out
+
+
 def test_query_service_bakes_the_map_and_answers_planner_fields(small_map):
     seq, frames, snap, smap = small_map
     with Stack(services=("query",), namespace=NS) as st:
@@ -82,10 +99,17 @@ def test_query_service_bakes_the_map_and_answers_planner_fields(small_map):
             u = sc.unarr(m16["unknown"])
             np.testing.assert_allclose(u, e.answer_sdf(query_messages.SdfRequest(pts, unknown=True)).unknown, atol=1e-6)
             assert u.shape == (len(pts),) and u.min() >= 0 and u.max() > 0.2
+            # ... and as computed here from the observed grid alone, by brute force over every
+            # unobserved voxel's cube and the grid's faces (outside it nothing was observed).
+            grid = e.state.observed
+            some = np.random.default_rng(2).choice(len(pts), 60, replace=False)
+            np.testing.assert_allclose(u[some], unknown_distance_brute_force(grid, pts[some]), atol=1e-5)
             safe = np.minimum(sc.unarr(m16["sdf"]), u)
             high, high_safe = np.mean(sc.unarr(m16["sdf"]) - gt > 0.05), np.mean(safe - gt > 0.05)
             print(f"answers > 5 cm too high: {100 * high:.2f} %, with unknown space as occupied {100 * high_safe:.2f} %")
-            assert high_safe <= high
+            # Measured (pytest -s tests/e2e/test_e2e_query.py -k planner_fields, 34be166, 2026-12-05):
+            # 4.17 % too high, 1.70 % with unknown space as occupied; bounds about 2x off.
+            assert high_safe < 0.04 and high_safe < 0.7 * high, (high, high_safe)
             # Far from anything seen: not observed; an old (1.0) request still gets a 1.0 reply.
             status, msg = sc.request(s, f"{NS}/query/sdf", {"v": 1, "points": sc.arr([[50.0, 50, 50]], "<f4"),
                                                            "observed": True})
