@@ -1,5 +1,6 @@
 """``aisdf bench scaling --quick`` for real: a tiny walk of the office and the floor with
-every method, one keyframe per 0.25 s and 2 s more, then the table's structure and sane values."""
+every method, one keyframe per 0.25 s and 2 s more, then the table's structure and its figures
+near the measured ones."""
 
 from __future__ import annotations
 
@@ -10,6 +11,20 @@ import math
 import pytest
 
 from aisdf.bench import scaling
+
+
+# QUICK_FIGURES: two runs of ``aisdf bench scaling --quick`` at 34be166 on 2026-12-05 (2 CPU cores
+# shared with another job; the walk is timed by the wall clock, so a loaded machine trains fewer
+# steps). Error 2 s after the walk, served / the network alone (cm); answers > 5 cm too high,
+# served / with unknown space as occupied (%):
+#   single, office    5.8 / 19.4,  4.1 / 12.1      13.2 / 3.3, 14.1 / 3.1
+#   single, floor    13.6 / 33.2, 16.5 / 45.2      26.8 / 3.8, 24.2 / 3.9
+#   submaps, office  15.1 / 38.4,  5.6 / 15.6       8.6 / 3.2, 11.0 / 2.4
+#   submaps, floor   12.9 / 27.2, 15.9 / 41.6      25.8 / 3.2, 25.5 / 3.7
+# The bounds: served < 40 cm (2.4x the worst) and < 0.7x the network alone (0.30-0.47); unknown
+# space as occupied < 10 % too high (2.6x the worst) and < 0.6x the served answer's (0.09-0.37).
+# (The full profile's criteria, docs/benchmarks.md, need minutes of walking: a benchmark, not a test.)
+SERVED_CM = 40.0
 
 
 @pytest.fixture(scope="module")
@@ -51,7 +66,7 @@ def test_quick_scaling_table(result):
             assert mem["measured"] > 0  # both mappers pool measured points (1.4 submaps, 1.5 one network)
             assert r["memory_bytes"] == sum(mem.values()) and r["memory_per_keyframe"] == r["memory_bytes"] // n
             for k in ("walk_end", "end"):
-                assert math.isfinite(r[f"error_{k}_cm"]) and 0 < r[f"error_{k}_cm"] < 200
+                assert math.isfinite(r[f"error_{k}_cm"]) and 0 < r[f"error_{k}_cm"] < SERVED_CM
                 by = r[f"error_{k}_by_source_cm"]  # the served answer (judged), 1.3's fused answer, the
                 # network alone, and the fused answer with the measured surface (structure.measured)
                 assert set(by) == {"served", "fused", "implicit", "measured", "unknown_occupied"}
@@ -63,7 +78,11 @@ def test_quick_scaling_table(result):
                 assert set(high) == set(by) and high[cfg.source] == r[f"too_high_{k}_pct"]
                 assert all(0 <= v <= 100 for v in high.values())
                 assert high["fused"] <= high["implicit"]  # the fusion only ever lowers an answer
-                assert high["unknown_occupied"] <= high["served"]  # (so does 1.6's min with unknown space)
+                # Against the truth, near the measured figures (QUICK_FIGURES): the served answer
+                # well below the network alone, and a planner taking unknown space as occupied
+                # (1.6) rarely more than 5 cm too high.
+                assert by["served"] < SERVED_CM and by["served"] < 0.7 * by["implicit"], (m, scene, k, by)
+                assert high["unknown_occupied"] < 10.0 and high["unknown_occupied"] < 0.6 * high["served"], (m, scene, high)
             ms = r["measured_surface"]  # every keyframe's pixels pooled: some surface, timed, once
             assert ms["voxels"] > 0 and ms["bytes"] > 0 and ms["add_ms_mean"] > 0
             assert ms["pooled_by"] == "mapper" and ms["bytes"] == mem["measured"]  # its own pool, counted
@@ -79,6 +98,8 @@ def test_quick_scaling_table(result):
         assert any("<= 5 cm" in c for c in crit) and any("1/3" in c for c in crit)
         assert all(v["ok"] is None or v["ok"] == (v["value"] <= v["limit"]) for v in crit.values())
     assert res["runs"]["single"]["floor"]["bytes_ratio"] == 1.0  # one network: all of it, every period
+    if "submaps" in methods:  # only the submaps that changed: measured 0.30-0.37 of it
+        assert res["runs"]["submaps"]["floor"]["bytes_ratio"] < 0.6
     info = res["scene_info"]["floor"]
     assert len(info["visits"]) == 7 and info["stream_s_per_keyframe"] > 10  # spread over the whole walk
 
