@@ -44,11 +44,14 @@ class QueryNode:
         self.cfg = cfg
         self.session = session
         self.engine = QueryEngine.from_config(cfg)
+        self._sdf_jobs: queue.Queue = queue.Queue(maxsize=cfg.queue_max)
+        self.pending = 0  # sdf requests accepted and not answered yet (waiting or being answered)
+        self._pending_lock = threading.Lock()
+        self.engine.waiting = lambda: self.pending  # planners first: the bake yields while requests are pending
         self.ns = cfg.namespace
         self.answered = 0
         self.errors = 0
         self.busy = 0
-        self._sdf_jobs: queue.Queue = queue.Queue(maxsize=cfg.queue_max)
         self._mesh_jobs: queue.Queue = queue.Queue(maxsize=4)
         self._stop = threading.Event()
         self._threads = [
@@ -190,9 +193,16 @@ class QueryNode:
             log.exception("internal error decoding a request")
             self._reply_err(q, protocol.ProtocolError("internal", f"{type(e).__name__}: {e}"))
             return
+        sdf = jobs is self._sdf_jobs
+        if sdf:
+            with self._pending_lock:
+                self.pending += 1
         try:
             jobs.put_nowait((q, req))
         except queue.Full:
+            if sdf:
+                with self._pending_lock:
+                    self.pending -= 1
             self.busy += 1
             if self.busy == 1 or self.busy % 100 == 0:
                 log.warning("request queue full (%d waiting): answering busy (%d so far)", jobs.maxsize, self.busy)
@@ -204,7 +214,12 @@ class QueryNode:
             item = jobs.get()
             if item is None:
                 return
-            self._answer(*item)
+            try:
+                self._answer(*item)
+            finally:
+                if jobs is self._sdf_jobs:
+                    with self._pending_lock:
+                        self.pending -= 1
             # Drop the last reference now: Zenoh finalises a query (and the requester's
             # get returns) only when the Query object is released.
             del item
@@ -251,7 +266,8 @@ class QueryNode:
                 "baked_version": bk.state.version if bk else None, "bakes": self.engine.baker.bakes,
                 "bake_failures": self.engine.baker.failures, "last_bake": self.engine.baker.last,
                 "lag": self.engine.lag(), "answered": self.answered, "errors": self.errors, "busy": self.busy,
-                "queued": self._sdf_jobs.qsize(),
+                "queued": self._sdf_jobs.qsize(), "held": self.engine.held,
+
                 "submaps": len(st.submaps.submaps) if st is not None and st.submaps is not None else None,
                 # (1.4: counted once per submap holding them, as published; the union keeps copies once;
                 # 1.5: a one-network map's points)

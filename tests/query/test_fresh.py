@@ -237,3 +237,36 @@ def test_a_changed_surfel_is_answered_from_the_newest_map(submap_map):
     np.testing.assert_allclose(after.sdf[near], exact.sdf[near], atol=1e-6)
     far = np.linalg.norm(pts - p0, axis=1) > 1.5
     np.testing.assert_array_equal(after.sdf[far], before.sdf[far])
+
+
+def test_planners_first_while_requests_wait_a_trailing_bake_answers(submap_map):
+    """Protocol 1.8: a request answered while other requests wait is not freshened (an answer
+    from the newest map costs some 40x a baked one, and would hold up those waiting): the bake
+    answers it, bit for bit, with its own version and age; alone, it is freshened again.
+    ``fresh_busy`` keeps freshening under load."""
+    m = submap_map
+    e = engine_of(m, fuse_radius=0.5, fresh_s=0)
+    e.bake_now()
+    pts = band_points(m, 6000, np.random.default_rng(5))
+    before = ask(e, pts)
+    assert e.set_submap(perturbed(m, 2))
+    fresh = changed_region(e, pts)
+    assert 0.1 < fresh.mean() < 0.9
+
+    e.waiting = lambda: 3  # this request and two waiting
+    held = ask(e, pts)
+    np.testing.assert_array_equal(held.sdf, before.sdf)
+    np.testing.assert_array_equal(held.gradient, before.gradient)
+    assert held.baked and held.map_version == 1 and e.held == 1
+    assert held.map_age_s >= before.map_age_s
+
+    e.waiting = lambda: 1  # alone: the changed region from the newest map
+    alone = ask(e, pts)
+    exact = ask(e, pts, exact=True)
+    np.testing.assert_allclose(alone.sdf[fresh], exact.sdf[fresh], atol=1e-6)
+    assert alone.map_version == 2 and e.held == 1
+
+    e.fresh_busy, e.waiting = True, (lambda: 3)  # freshen under load too
+    busy = ask(e, pts)
+    np.testing.assert_array_equal(busy.sdf, alone.sdf)
+    assert busy.map_version == 2 and e.held == 1

@@ -4,7 +4,13 @@ in a background thread and swaps each finished bake in with one reference assign
 A bake of a new submap map reuses every sample of the previous bake outside the extended
 boxes of the submaps that changed (and away from surfels that changed), so a bake costs
 what changed, not the building. It runs at a lower CPU priority and at most ``duty`` of
-the time, leaving the machine to the answers and a mapper beside it.
+the time, leaving the machine to the answers and a mapper beside it, in bounded units (a
+chunk of points: the field, the surfels and the measured points; the activations and the
+nearest-point searches of one chunk in memory at a time). While requests wait, the answers
+do not wait for it: a trailing bake answers them (``QueryEngine.answer_sdf``). Resting the
+bake while requests wait was measured and left out: the space mapped since its last bake
+is then answered by the networks for longer, which costs the planners more than the rest
+gives them (docs/benchmarks.md, Planners under load).
 """
 
 from __future__ import annotations
@@ -96,7 +102,16 @@ class Baker:
             grad = np.empty((len(pts), 3), np.float32)
 
             def one(i: int) -> None:
-                sdf[i:i + chunk], grad[i:i + chunk] = self.field(state, pts[i:i + chunk], True)
+                # One bounded unit of work: the field, the surfels and the measured points of a chunk.
+                q = pts[i:i + chunk]
+                f, g = self.field(state, q, True)
+                if explicit is not None or state.measured is not None:
+                    d_e, g_e = (None, None)
+                    if explicit is not None:
+                        d_e, g_e, _ = explicit(q.astype(np.float64))
+                        d_e, g_e = d_e.astype(np.float32), g_e.astype(np.float32)
+                    f, g = served_answer(q, f, g, d_e, g_e, state.measured, self.fuse_radius)
+                sdf[i:i + chunk], grad[i:i + chunk] = f, g
 
             starts = range(0, len(pts), chunk)
             if self.threads > 1 and self.device.type == "cpu" and len(starts) > 1:
@@ -107,13 +122,6 @@ class Baker:
             else:
                 for i in starts:
                     one(i)
-            if explicit is not None:
-                d_e, g_e, _ = explicit(pts.astype(np.float64))
-                sdf, grad = served_answer(pts, sdf, grad, d_e.astype(np.float32), g_e.astype(np.float32),
-                                          state.measured, self.fuse_radius, workers=self.threads)
-            elif state.measured is not None:
-                sdf, grad = served_answer(pts, sdf, grad, None, None, state.measured, self.fuse_radius,
-                                          workers=self.threads)
             return sdf, grad
 
         return fn

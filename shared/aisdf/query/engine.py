@@ -32,6 +32,7 @@ from __future__ import annotations
 import logging
 import threading
 import time
+from collections.abc import Callable
 
 import numpy as np
 import torch
@@ -65,7 +66,7 @@ class QueryEngine:
                  fuse_radius: float = DEFAULT_FUSE_RADIUS, mesh_resolution: float = 0.05, mesh_max_cells: int = 16_000_000,
                  bake: bool = True, bake_config: BakeConfig | None = None, bake_threads: int = 2,
                  bake_duty: float = 0.75, bake_nice: int = 10, mesh_tile: int = 64, surfel_tol: float = 0.001,
-                 measured: bool = True, fresh_s: float = 2.0):
+                 measured: bool = True, fresh_s: float = 2.0, fresh_busy: bool = False):
         self.max_points = max_points
         self.chunk_points = chunk_points
         self.device = pick_device(device)
@@ -81,8 +82,11 @@ class QueryEngine:
         self.use_measured = bool(measured)  # protocol 1.4: fused answers use the submaps' measured points
         self._stale: tuple | None = None  # ((bake, newest map, added_only), Staleness): the newest pair's
         self.fresh_s = float(fresh_s)  # the bake answers alone while it trails the newest map by at most this
+        self.fresh_busy = bool(fresh_busy)  # also while requests wait (else: planners first, the bake answers)
+        self.held = 0  # answers from a bake trailing by more than fresh_s because requests were waiting
         self.baker = Baker(self._field, lambda: self._state, self.device, chunk_points, fuse_radius, bake_config,
                            bake_threads, bake_duty, bake_nice, surfel_tol, enabled=bake)
+        self.waiting: Callable[[], int] = lambda: 0  # sdf requests pending (the service sets it; 0 in-process)
 
     @classmethod
     def from_config(cls, cfg) -> "QueryEngine":
@@ -90,7 +94,7 @@ class QueryEngine:
                    cfg.mesh_max_cells, cfg.bake,
                    BakeConfig(block=cfg.bake_block, fine=cfg.bake_fine, band=cfg.bake_band, tol=cfg.bake_tol,
                               near_surface=cfg.bake_near_surface), cfg.bake_threads, cfg.bake_duty, cfg.bake_nice,
-                   cfg.mesh_tile, cfg.bake_surfel_tol, cfg.measured, cfg.fresh_s)
+                   cfg.mesh_tile, cfg.bake_surfel_tol, cfg.measured, cfg.fresh_s, cfg.fresh_busy)
 
     @property
     def fuse_radius(self) -> float:
@@ -279,7 +283,9 @@ class QueryEngine:
         """How far answers trail the newest map (``versions``, ``behind_s``), and the bake
         (``bake_versions``, ``bake_behind_s``). A submap map's answers trail by at most
         ``fresh_s``: beyond it the regions that changed since the bake are answered from the
-        newest map (1.7); a one-network map's answers trail as its bake does."""
+        newest map (1.7), except for requests answered while others wait (1.8: planners
+        first, the bake answers; counted in ``held``); a one-network map's answers trail as its
+        bake does."""
         bake = self.baker.lag()
         st = self._state
         fresh = st is not None and st.submaps is not None and bake["behind_s"] > self.fresh_s
@@ -350,7 +356,13 @@ class QueryEngine:
         if req.source == "fused" and not req.exact and bk is not None:
             state = bk.state
             sdf, grad, covered = bk.field.query(pts, req.gradient)
-            stale = self._staleness(bk, newest, added_only=not self._bake_trails(bk))
+            trails = self._bake_trails(bk)
+            if trails and not self.fresh_busy and self.waiting() > 1:
+                # Planners first: with requests waiting, the changed regions are not evaluated
+                # afresh; the bake answers, and the reply says its map's version and age.
+                trails = False
+                self.held += 1
+            stale = self._staleness(bk, newest, added_only=not trails)
             fresh = np.zeros(len(sdf), bool) if stale is None else stale.points(np.asarray(pts))
             # Outside the bake: the network of the same map; in regions the newest map changed
             # since the bake: that map's answer.
