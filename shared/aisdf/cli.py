@@ -28,7 +28,7 @@ def _bench_query(args) -> None:
 
     res = run(out=args.out, sizes=args.sizes, repeats=args.repeats, threads=args.threads, bake_threads=args.bake_threads,
               train_steps=args.train_steps, planners=args.planners, planner_s=args.planner_s, lag_s=args.lag_s,
-              n_eval=args.eval_points, mapper=args.mapper)
+              n_eval=args.eval_points, mapper=args.mapper, beside_mapper=args.beside_mapper)
     print(report(res))
 
 
@@ -47,6 +47,7 @@ def _bench(args) -> None:
 # Benchmarks with their own options: name, module (with main(argv)), what it measures.
 TOOLS = [
     ("served", "aisdf.bench.served", "what planners get from the real services over Zenoh while the map grows"),
+    ("load", "aisdf.bench.load", "8 planners x 10,000 points with gradients while the mapper trains beside them"),
     ("bake", "aisdf.bench.bake", "the query service's incremental bake against a full bake as a submap map grows"),
     ("rosbag", "aisdf.bench.rosbag", "7-Scenes frames mapped from .mcap, .db3 and ROS 1 recordings against the folder"),
     ("ros2-live", "aisdf.bench.ros2_live", "the live ROS 2 source against the protocol-v1 frontend, real processes"),
@@ -113,6 +114,9 @@ def main(argv: list[str] | None = None) -> None:
                    "900 with one network: about what the demo's mapper makes in 180 s)")
     q.add_argument("--planners", type=int, default=8)
     q.add_argument("--planner-s", type=float, default=60.0, help="seconds of the concurrent-planners run")
+    q.add_argument("--no-mapper", dest="beside_mapper", action="store_false",
+                   help="the concurrent planners without a mapper training beside them (the map above, published "
+                   "once); by default the mapper trains the office walk on this machine meanwhile (aisdf bench load)")
     q.add_argument("--lag-s", type=float, default=30.0, help="seconds of the 1 Hz lag run")
     q.add_argument("--eval-points", type=int, default=200_000)
     q.add_argument("--out", default="runs/bench-query", help="results and the cached map (default runs/bench-query)")

@@ -18,8 +18,11 @@ building's map.
    with each point's distance to unknown space (protocol 1.6's ``unknown``).
 5. Lag: weights published at the demo's snapshot rate (1 Hz); how far the answering map
    trails the newest weights, sampled at 10 Hz.
-6. Concurrent planners: 8 planners sending 10,000-point requests back to back for
-   ``--planner-s`` seconds: latency percentiles, requests lost, busy replies.
+6. Concurrent planners: 8 planners sending 10,000-point requests with gradients back to
+   back for ``--planner-s`` seconds: latency percentiles, requests lost, busy replies, the
+   query service's memory. By default with the mapper training the office walk beside them
+   (``aisdf bench load``: its own services); ``--no-mapper``: the quiet case, the map
+   above published once.
 """
 
 from __future__ import annotations
@@ -27,16 +30,17 @@ from __future__ import annotations
 import json
 import subprocess
 import sys
-import threading
 import time
 from pathlib import Path
 
 import numpy as np
 import torch
 
-from .. import keys, protocol, query_messages, transport
+from .. import keys, query_messages, transport
 from ..client import SdfClient
 from ..stack import Stack, wait_for
+from .load import concurrent_planners, planners_beside_mapper
+from .load import report as load_report
 from .query_map import demo_map, engine_of, versioned
 
 NS = "aisdf/bench"
@@ -106,7 +110,7 @@ def bake_probe(map_path: Path, threads: int = 2) -> dict:
 def run(out: str | Path = "runs/bench-query", sizes=(1_000, 10_000, 100_000), repeats: int = 20,
         threads: int | None = None, bake_threads: int = 2, train_steps: int | None = None, planners: int = 8,
         planner_s: float = 60.0, lag_s: float = 30.0, n_eval: int = 200_000, quiet: bool = False,
-        log_dir: str | None = None, mapper: str = "submaps") -> dict:
+        log_dir: str | None = None, mapper: str = "submaps", beside_mapper: bool = True) -> dict:
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     torch.set_num_threads(threads or 1)  # as the service: parallelism from its workers and bake threads
@@ -235,10 +239,15 @@ def run(out: str | Path = "runs/bench-query", sizes=(1_000, 10_000, 100_000), re
                           "bake_behind_s_max": float(np.max(bake_lags)), "bakes": info.get("bakes"),
                           "last_bake": info.get("last_bake")}
 
-            say(f"6/6 {planners} concurrent planners x {planner_s:.0f} s of 10,000-point requests")
-            res["planners"] = concurrent_planners(client, pts, planners, planner_s)
-            info = transport.get_latest(s, info_key, 1.0) or {}
-            res["planners"]["service"] = {k: info.get(k) for k in ("answered", "errors", "busy")}
+            if not beside_mapper:
+                say(f"6/6 {planners} concurrent planners x {planner_s:.0f} s of 10,000-point requests, no mapper")
+                res["planners"] = concurrent_planners(client, pts, planners, planner_s)
+                info = transport.get_latest(s, info_key, 1.0) or {}
+                res["planners"]["service"] = {k: info.get(k) for k in ("answered", "errors", "busy")}
+    if beside_mapper:
+        say(f"6/6 {planners} concurrent planners x {planner_s:.0f} s of 10,000-point requests, the mapper training "
+            "the office walk beside them (aisdf bench load)")
+        res["planners"] = planners_beside_mapper(planners, planner_s, log_dir=log_dir, say=say)
     (out / "query.json").write_text(json.dumps(res, indent=2))
     return res
 
@@ -250,45 +259,6 @@ def _gt_gradient(seq, pts: np.ndarray, h: float = 0.01) -> np.ndarray:
         e[k] = h
         g[:, k] = (seq.gt_sdf(pts + e) - seq.gt_sdf(pts - e)) / (2 * h)
     return g
-
-
-def concurrent_planners(client: SdfClient, pts: np.ndarray, planners: int, seconds: float,
-                        n_points: int = 10_000, gradient: bool = True) -> dict:
-    """``planners`` threads, each sending ``n_points``-point requests back to back."""
-    lat: list[float] = []
-    counts = {"sent": 0, "answered": 0, "busy": 0, "errors": 0, "timeouts": 0}
-    lock = threading.Lock()
-    stop = time.monotonic() + seconds
-
-    def planner(i: int):
-        rng = np.random.default_rng(100 + i)
-        while time.monotonic() < stop:
-            q = pts[rng.integers(0, len(pts), n_points)].astype(np.float32)
-            t = time.perf_counter()
-            try:
-                client.query(q, gradient=gradient)
-                kind = "answered"
-            except protocol.ProtocolError as e:
-                kind = "busy" if e.code == "busy" else "errors"
-            except TimeoutError:
-                kind = "timeouts"
-            dt = time.perf_counter() - t
-            with lock:
-                counts["sent"] += 1
-                counts[kind] += 1
-                if kind == "answered":
-                    lat.append(dt)
-
-    ths = [threading.Thread(target=planner, args=(i,)) for i in range(planners)]
-    t0 = time.perf_counter()
-    for t in ths:
-        t.start()
-    for t in ths:
-        t.join()
-    wall = time.perf_counter() - t0
-    return {"planners": planners, "seconds": round(wall, 1), "points_per_request": n_points, "gradient": gradient,
-            **counts, "lost": counts["sent"] - counts["answered"] - counts["busy"] - counts["errors"],
-            "latency_ms": _pcts(lat) if lat else None, "points_per_s": counts["answered"] * n_points / wall}
 
 
 # ----------------------------------------------------------------------------- tables
@@ -337,12 +307,5 @@ def report(res: dict) -> str:
                          f"{x['inproc']['p50']:.2f} / {x['inproc']['p99']:.2f} | {x['inproc_pts_s']:,.0f} | "
                          f"{x['zenoh']['p50']:.2f} / {x['zenoh']['p95']:.2f} / {x['zenoh']['p99']:.2f} | "
                          f"{x['zenoh_pts_s']:,.0f} |")
-    lat = pl["latency_ms"] or {"p50": float("nan"), "p95": float("nan"), "p99": float("nan")}
-    lines += ["", f"| {pl['planners']} planners x {pl['seconds']:.0f} s, {pl['points_per_request']:,}-point requests "
-              f"with gradients | value |", "|---|---:|",
-              f"| requests sent / answered / busy / errors / timeouts | {pl['sent']} / {pl['answered']} / {pl['busy']} / "
-              f"{pl['errors']} / {pl['timeouts']} |",
-              f"| lost (no reply) | {pl['lost']} |",
-              f"| latency p50 / p95 / p99 (ms) | {lat['p50']:.1f} / {lat['p95']:.1f} / {lat['p99']:.1f} |",
-              f"| points answered per second | {pl['points_per_s']:,.0f} |"]
+    lines += ["", load_report(pl)]
     return "\n".join(lines)

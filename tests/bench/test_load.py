@@ -1,0 +1,19 @@
+"""``aisdf bench load`` end to end: planners hammering the real query service over Zenoh while
+the real mapper trains a walk beside it. Small: 2 planners, a few seconds."""
+
+from aisdf.bench.load import planners_beside_mapper, report
+
+
+def test_planners_beside_a_training_mapper_are_answered_first(tmp_path):
+    # fresh_s 0: every map newer than the bake makes it trail, so with two planners back to
+    # back (one request pending while the other is answered) the trailing bake answers.
+    res = planners_beside_mapper(planners=2, seconds=6.0, n_points=2000, keyframes=24, period_s=0.5, warmup_s=6.0,
+                                 query_set=["fresh_s=0"], mapper_set=["training.network.width=32"],
+                                 log_dir=tmp_path / "logs", say=lambda s: None)
+    assert res["answered"] == res["sent"] > 10 and res["lost"] == 0 and res["errors"] == res["timeouts"] == 0
+    assert res["mapper_steps"] > 0 and res["keyframes_published"] > 12  # the mapper trained meanwhile
+    assert res["service"]["answered"] >= res["answered"]
+    assert res["service"]["held"] > 0  # planners first: some answers came from the trailing bake
+    m = res["query_rss_mb"]
+    assert 100 < m["start"] <= m["max"] < 4000
+    assert "planners x" in report(res)
