@@ -52,6 +52,31 @@ def test_two_step_smoke_training(switches):
     assert d.shape == (5,) and g.shape == (5, 3) and np.allclose(trainer.sdf(np.zeros((5, 3))), d)
 
 
+def test_the_surfel_prior_caps_free_samples_bounds_in_training():
+    """``surfel_bounds``: each step asks the trainer's prior about its free samples, and a prior
+    that knows a surface nearer than the batch does changes the training; one that knows none
+    (or the switch off) leaves the step exactly as iSDF's."""
+    calls = []
+
+    def near(points):  # known surface 1 cm from every sample
+        calls.append(len(points))
+        return np.full(len(points), 0.01), np.tile([0.0, 0.0, 1.0], (len(points), 1))
+
+    def nothing(points):
+        return np.full(len(points), np.inf), np.zeros((len(points), 3))
+
+    losses = {}
+    for name, prior, on in (("near", near, True), ("nothing", nothing, True), ("off", near, False)):
+        trainer = Trainer(_tiny_cfg(surfel_bounds=on))
+        trainer.bound_prior = prior
+        for f in room_frames(3):
+            trainer.add_keyframe(f)
+        losses[name] = trainer.step()["loss"]
+    assert len(calls) == 1 and calls[0] > 0  # asked once (the switch off: never), about the free samples
+    assert losses["nothing"] == losses["off"]
+    assert losses["near"] != losses["nothing"], losses
+
+
 def test_checkpoint_resume_is_exact():
     trainer = Trainer(_tiny_cfg(max_keyframes=3))
     for f in room_frames(4):
