@@ -3,12 +3,14 @@
 #   make test   - the test suite
 #   make compose-test - builds the image, runs docker-compose.yml on the host network and checks
 #                  it (needs a Docker engine; not part of make test)
+#   make mutation - breaks the product in named ways, one at a time in a copy of the tree, and
+#                  checks the tests catch each (minutes; not part of make test; docs/testing.md)
 PYTHON ?= python3
 VENV ?= .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.aisdf-installed
 
-.PHONY: setup demo test compose-test bench-query bench-scaling bench clean
+.PHONY: setup demo test compose-test mutation bench-query bench-scaling bench clean
 
 setup: $(STAMP)
 
@@ -30,6 +32,9 @@ test: setup
 
 compose-test: setup
 	$(PY) tests/run_compose_test.py $(ARGS)
+
+mutation: setup
+	$(PY) tests/run_mutation_check.py $(ARGS)
 
 bench-query: setup
 	$(VENV)/bin/aisdf bench query $(ARGS)

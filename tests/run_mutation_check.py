@@ -1,0 +1,227 @@
+"""The mutation check (``make mutation``; not part of ``make test``): does the suite fail when
+the product breaks in the ways users would notice?
+
+Each breakage below is one exact text replacement in one product file (the script stops if
+the text is not there exactly once: a breakage that no longer applies is a finding, not a
+pass). Each is applied in turn to a fresh copy of the tree in a temporary folder (the working
+tree is never touched, so an interrupted run leaves nothing broken), and the tests that should
+catch it run there (a narrowed selection of the default suite, with the copy's packages first
+on ``PYTHONPATH``, so that the services the end-to-end tests start run the broken code too).
+A breakage is caught when that selection fails. The table printed at the end says which were.
+
+The copy is of the committed tree (``git archive HEAD``) by default, ``--worktree``: of the
+working tree as it is (tracked and untracked files git does not ignore). ``--baseline``: first
+run each selection on the unbroken copy (it must pass, else "caught" means nothing).
+``--only NAME`` (repeatable): those breakages only; ``--list``: the names and exit.
+
+Exit status: 0 when every breakage was caught, 1 otherwise. See docs/testing.md.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import shutil
+import subprocess
+import sys
+import tempfile
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+PACKAGES = {"aisdf": "shared/aisdf", "aisdf_frontend": "services/frontend", "aisdf_mapper": "services/mapper",
+            "aisdf_query": "services/query"}
+
+
+@dataclass(frozen=True)
+class Breakage:
+    name: str
+    what: str
+    path: str
+    old: str
+    new: str
+    tests: tuple[str, ...]
+
+
+BREAKAGES = [
+    Breakage("fused-without-measured", "the fused answer ignores the measured points (1.4/1.5's rule gone)",
+             "shared/aisdf/query/answer.py", "    if measured is None:\n        return sdf, grad\n",
+             "    if True:\n        return sdf, grad\n",
+             ("tests/mapper/test_pipeline.py::test_one_network_sends_its_measured_points_1_5",)),
+    Breakage("fused-without-surfels", "the fused answer ignores the surfel map",
+             "shared/aisdf/query/answer.py", "    if d_e is None:\n", "    if True:\n",
+             ("tests/mapper/test_pipeline.py::test_one_network_sends_its_measured_points_1_5",)),
+    Breakage("served-network-alone", "the served answer is the network alone (no surfels, no measured points)",
+             "shared/aisdf/query/answer.py", '    ``workers``: threads of the nearest-point search."""\n',
+             '    ``workers``: threads of the nearest-point search."""\n    return sdf_i, grad_i\n',
+             ("tests/mapper/test_pipeline.py::test_one_network_sends_its_measured_points_1_5",
+              "tests/mapper/test_pipeline.py::test_messages_and_query_engine_agree")),
+    Breakage("demo-served-network-alone", "the same, against the demo's own test (a 75 s demo: minutes)",
+             "shared/aisdf/query/answer.py", '    ``workers``: threads of the nearest-point search."""\n',
+             '    ``workers``: threads of the nearest-point search."""\n    return sdf_i, grad_i\n',
+             ("tests/e2e/test_e2e.py::test_demo_maps_the_synthetic_building",)),
+    Breakage("submap-priors-empty", "surfel bounds off in submaps: every submap's prior holds no surfel",
+             "shared/aisdf/structure/prior.py", "s = s[np.flatnonzero(d <= self.radius)]", "s = s[:0]",
+             ("tests/structure/test_surfel_bounds.py",)),
+    Breakage("surfel-bounds-ignored", "the trainer never tightens a bound with the surfel map",
+             "shared/aisdf/mapping/trainer.py", "if cfg.surfel_bounds and self.bound_prior is not None:",
+             "if False:", ("tests/mapping/test_trainer.py", "tests/structure/test_surfel_bounds.py")),
+    Breakage("atlanta-vertical-off", "the Atlanta frame's vertical tilted by about 11 degrees at initialisation",
+             "shared/aisdf/structure/atlanta.py", "        self.vertical = v\n        self.vertical_count = len(self._buffer)",
+             "        self.vertical = unit(v + 0.2 * perpendicular(v))\n        self.vertical_count = len(self._buffer)",
+             ("tests/structure/test_atlanta.py",)),
+    Breakage("bake-stale-as-new", "a bake that lags the newest map reports the newest map's version",
+             "shared/aisdf/query/engine.py", "        if req.source == \"fused\" and not req.exact and bk is not None:\n"
+             "            state = bk.state\n",
+             "        if req.source == \"fused\" and not req.exact and bk is not None:\n            state = newest\n",
+             ("tests/query/test_baked.py",)),
+    Breakage("dropped-acknowledgement", "the mapper adds a keyframe but never acknowledges it",
+             "services/mapper/main.py", "            self.counts[\"accepted\"] += 1\n            ok.append(kf.frame_id)\n",
+             "            self.counts[\"accepted\"] += 1\n",
+             ("tests/services/test_reliable_delivery.py",)),
+    Breakage("journal-without-fsync", "the keyframe journal is written without its fsync",
+             "services/mapper/journal.py", "            os.fsync(self._f.fileno())", "            pass",
+             ("tests/services/test_reliable_delivery.py",)),
+    Breakage("no-deduplication", "the mapper adds a resent keyframe a second time",
+             "services/mapper/main.py", "            if self.is_seen(kf.sensor, kf.frame_id):  # a resend",
+             "            if False:  # a resend", ("tests/services/test_reliable_delivery.py",)),
+    Breakage("acl-planner-answers-queries", "the access control gives planners the query service's rules on "
+             "query/** (a planner can answer in its place)", "deploy/tls/router.json5",
+             'rules: ["read-maps", "receive-maps", "ask-queries", "receive-answers"] },',
+             'rules: ["read-maps", "receive-maps", "ask-queries", "receive-answers", "answer-queries", '
+             '"hear-queries"] },',
+             ("tests/services/test_tls_acl.py::test_only_the_query_identity_can_answer_planners",)),
+    Breakage("acl-rule-removed", "the access control loses the rule that lets the frontend hear acknowledgements",
+             "deploy/tls/router.json5", '"put-keyframes", "sub-acks", "hear-acks", "watch-mappers"',
+             '"put-keyframes", "sub-acks", "watch-mappers"',
+             ("tests/services/test_tls_acl.py::test_planner_gets_answers_and_reads_maps",)),
+    Breakage("frontend-drain-forever", "the frontend ignores drain_timeout_s and waits for acknowledgements forever",
+             "services/frontend/main.py", "sender.drain(cfg.drain_timeout_s, stop)", "sender.drain(1e9, stop)",
+             ("tests/services/test_frontend.py",)),
+    Breakage("internal-error-as-no-map", "the query service reports its internal errors as no_map",
+             "services/query/main.py",
+             '            log.exception("internal error answering a request")\n'
+             '            self._reply_err(q, protocol.ProtocolError("internal",',
+             '            log.exception("internal error answering a request")\n'
+             '            self._reply_err(q, protocol.ProtocolError("no_map",',
+             ("tests/services/test_sdf_client.py",)),
+]
+
+
+def copy_tree(dest: Path, worktree: bool) -> None:
+    if worktree:
+        files = subprocess.run(["git", "ls-files", "-co", "--exclude-standard", "-z"], cwd=ROOT, check=True,
+                               capture_output=True).stdout.decode().split("\0")
+        for f in filter(None, files):
+            src = ROOT / f
+            if src.is_file():
+                (dest / f).parent.mkdir(parents=True, exist_ok=True)
+                shutil.copy2(src, dest / f)
+    else:
+        archive = subprocess.run(["git", "archive", "HEAD"], cwd=ROOT, check=True, capture_output=True).stdout
+        subprocess.run(["tar", "-x", "-C", str(dest)], input=archive, check=True)
+    shim = dest / ".mutation-packages"  # the copy's packages, found before the editable install's
+    shim.mkdir()
+    for name, rel in PACKAGES.items():
+        (shim / name).symlink_to(dest / rel, target_is_directory=True)
+
+
+def apply(dest: Path, b: Breakage) -> None:
+    path = dest / b.path
+    text = path.read_text()
+    n = text.count(b.old)
+    if n != 1:
+        raise SystemExit(f"breakage {b.name}: the text to replace occurs {n} times in {b.path} (expected once); "
+                         "update the breakage to the product as it is now")
+    path.write_text(text.replace(b.old, b.new))
+
+
+def run_tests(dest: Path, tests: tuple[str, ...], timeout: float, log: Path) -> tuple[int, int | None]:
+    """(pytest's exit status, tests run); 124 when the selection ran past ``timeout``."""
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(dest / ".mutation-packages"),
+                                                        os.environ.get("PYTHONPATH", "")]).rstrip(os.pathsep),
+           "PYTHONDONTWRITEBYTECODE": "1"}
+    check = subprocess.run([sys.executable, "-c", "import aisdf, aisdf_query; print(aisdf.__file__)"], cwd=dest,
+                           env=env, capture_output=True, text=True, check=True).stdout.strip()
+    if not Path(check).resolve().is_relative_to(dest.resolve()):
+        raise SystemExit(f"the copy's packages are not the ones imported ({check}): the check would test the "
+                         "working tree")
+    cmd = [sys.executable, "-m", "pytest", "-q", "-x", "-p", "no:cacheprovider", *tests]  # the copy's pyproject
+    with open(log, "w") as out:
+        try:
+            rc = subprocess.run(cmd, check=False, cwd=dest, env=env, stdout=out, stderr=subprocess.STDOUT, timeout=timeout,
+                                start_new_session=True).returncode
+        except subprocess.TimeoutExpired:
+            rc = 124
+    text = log.read_text()
+    ran = None
+    for line in reversed(text.splitlines()):
+        if " in " in line and ("passed" in line or "failed" in line or "error" in line):
+            ran = sum(int(w) for w, k in zip(line.split(), line.split()[1:])
+                      if w.isdigit() and k.rstrip(",") in ("passed", "failed", "errors", "error"))
+            break
+    return rc, ran
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--only", action="append", metavar="NAME", help="run only this breakage (repeatable)")
+    p.add_argument("--list", action="store_true", help="list the breakages and exit")
+    p.add_argument("--worktree", action="store_true", help="copy the working tree, not HEAD")
+    p.add_argument("--baseline", action="store_true", help="first run every selection unbroken (must pass)")
+    p.add_argument("--timeout", type=float, default=300.0, help="seconds per selection (default 300)")
+    p.add_argument("--keep", action="store_true", help="keep the temporary folder (its logs) and say where")
+    args = p.parse_args(argv)
+    if args.list:
+        for b in BREAKAGES:
+            print(f"{b.name:28s} {b.path}: {b.what}\n{'':28s} tests: {' '.join(b.tests)}")
+        return 0
+    chosen = [b for b in BREAKAGES if not args.only or b.name in args.only]
+    unknown = set(args.only or ()) - {b.name for b in BREAKAGES}
+    if unknown:
+        p.error(f"unknown breakage(s): {', '.join(sorted(unknown))}")
+    tmp = Path(tempfile.mkdtemp(prefix="aisdf-mutation-"))
+    rows, t_all = [], time.monotonic()
+    try:
+        if args.baseline:
+            base = tmp / "baseline"
+            base.mkdir()
+            copy_tree(base, args.worktree)
+            selection = tuple(dict.fromkeys(t for b in chosen for t in b.tests))
+            t0 = time.monotonic()
+            rc, ran = run_tests(base, selection, args.timeout * 2, tmp / "baseline.log")
+            print(f"baseline (unbroken): {ran} tests, exit status {rc}, {time.monotonic() - t0:.0f} s", flush=True)
+            if rc != 0:
+                print((tmp / "baseline.log").read_text()[-3000:])
+                print("the unbroken tree fails its selections: fix that first")
+                return 2
+        for b in chosen:
+            dest = tmp / b.name
+            dest.mkdir()
+            copy_tree(dest, args.worktree)
+            apply(dest, b)
+            t0 = time.monotonic()
+            rc, ran = run_tests(dest, b.tests, args.timeout, tmp / f"{b.name}.log")
+            dt = time.monotonic() - t0
+            caught = rc not in (0, 5)  # 5: no test collected, which catches nothing
+            rows.append((b, ran, caught, rc, dt))
+            print(f"{b.name}: {'caught' if caught else 'NOT CAUGHT'} ({ran} tests, exit {rc}, {dt:.0f} s)", flush=True)
+            if not args.keep:
+                shutil.rmtree(dest, ignore_errors=True)
+    finally:
+        if not args.keep:
+            shutil.rmtree(tmp, ignore_errors=True)
+    print()
+    print("| breakage | file | tests run | caught | seconds |\n|---|---|---:|---|---:|")
+    for b, ran, caught, rc, dt in rows:
+        print(f"| {b.name} | {b.path} | {ran if ran is not None else '?'} | "
+              f"{'yes' if caught else 'NO'}{'' if rc in (0, 1) else f' (exit {rc})'} | {dt:.0f} |")
+    n = sum(r[2] for r in rows)
+    print(f"\n{n} of {len(rows)} breakages caught, {time.monotonic() - t_all:.0f} s in all"
+          + (f"; logs in {tmp}" if args.keep else ""))
+    return 0 if n == len(rows) else 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())
