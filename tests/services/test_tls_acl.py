@@ -204,7 +204,8 @@ def test_planner_publishing_keyframes_or_maps_changes_nothing(deployment):
         sub.undeclare()
         assert 910_000 not in overheard  # ... and a planner cannot overhear keyframes
 
-        # maps: only the mapper's reach the query service
+        # maps: only the mapper's reach the query service (not a planner's, the frontend's, a
+        # monitor's or the query identity's own)
         q0 = info(d, "query")
         # a forged map: one of the mapper's submaps and an index listing it, from a far future
         index = transport.get_latest(d["monitor"], keys.key(NS, keys.MAP_INDEX), 3.0)
@@ -217,9 +218,11 @@ def test_planner_publishing_keyframes_or_maps_changes_nothing(deployment):
             transport.put(session, keys.key(NS, f"{keys.MAP_SUBMAPS}/{sid}"), sub)
             transport.put(session, keys.key(NS, keys.MAP_INDEX), index)
 
-        for s in (planner, frontend):
+        for s in (planner, frontend, d["monitor"]):
             forge(s)
-        time.sleep(3.0)
+        with transport.open_session(opts(d["conf"]["query"])) as query:  # it reads maps, never writes them
+            forge(query)
+            time.sleep(3.0)
         q1 = info(d, "query")
         print(f"query service map version before/after forged maps: {q0['version']} / {q1['version']}")
         assert q1["version"] < 10**9 and q1["epoch"] < 10**15
