@@ -24,7 +24,7 @@ import numpy as np
 import torch
 
 from .. import keys, protocol, query_messages
-from ..baked import bake
+from ..baked import BakeConfig, bake
 from ..mapping.frames import Frame
 from ..structure.fusion import DEFAULT_FUSE_RADIUS
 from ..submaps.pipeline import SubmapPipeline
@@ -41,6 +41,37 @@ def feed(engine: QueryEngine, messages) -> int:
     return n
 
 
+def compare(e: QueryEngine, version: int, n_keyframes: int, changed: int) -> np.ndarray:
+    """Bake ``e``'s newest map incrementally, then fully with the same surfels; print the row;
+    (incremental evaluations, seconds, full evaluations, seconds)."""
+    for sm in e.state.submaps.submaps.values():  # warm the new networks up (torch's first call)
+        e._implicit(sm.net, np.zeros((64, 3), np.float32), True)
+    t = time.perf_counter()
+    inc = e.bake_now().field
+    t_inc = time.perf_counter() - t
+    # The full bake of the same map with the surfels the incremental one was computed with
+    # (its reference: surfels that moved less than bake_surfel_tol keep their baked geometry).
+    ref_state = e.state.with_surfels(e.baked.surfel_ref, e.state.surfel_version)
+    t = time.perf_counter()
+    full = bake(e.baker.fused_fn(ref_state), e.state.observed, e.baker.config)
+    t_full = time.perf_counter() - t
+    pts = e.state.observed.origin + np.random.default_rng(version).uniform(
+        0, 1, (20_000, 3)) * (e.state.observed.bounds[1] - e.state.observed.origin)
+    fa, _, ca = inc.query(pts, False)
+    fb, _, cb = full.query(pts, False)
+    d = np.abs(fa - fb)[ca & cb]
+    diff, over = (float(d.max()), float(np.mean(d > 0.002))) if len(d) else (0.0, 0.0)
+    assert (ca == cb).all()
+    # What the tolerance costs: the fused field with the newest surfels against the reference's.
+    inside = pts[ca]
+    tol_d = np.abs(e.baker.fused_fn(e.state)(inside)[0] - e.baker.fused_fn(ref_state)(inside)[0])
+    tol_max, tol_over = (float(tol_d.max()), float(np.mean(tol_d > 0.002))) if len(tol_d) else (0.0, 0.0)
+    print(f"| {version} | {n_keyframes} | {len(e.state.submaps.submaps)} | {changed} | {inc.stats['blocks']:,} "
+          f"| {inc.stats['evaluations']:,} / {t_inc:.2f} | {full.stats['evaluations']:,} / {t_full:.2f} "
+          f"| {diff:.1e} / {over:.4f} | {tol_max:.1e} / {tol_over:.4f} |", flush=True)
+    return np.array([inc.stats["evaluations"], t_inc, full.stats["evaluations"], t_full], float)
+
+
 def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(prog="aisdf bench bake", description=__doc__.split("\n\n")[0])
     ap.add_argument("--building", default="floor")
@@ -50,6 +81,10 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--period", type=int, default=2, help="keyframes per publication period")
     ap.add_argument("--bake-from", type=int, default=60, help="first keyframe after which the map is baked (before: "
                     "only published into the engine)")
+    ap.add_argument("--change-tol", type=float, default=0.001, help="the query service's bake_change_tol (m): a "
+                    "re-bake keeps a block's fine samples where its corners and centre moved less; 0: exact")
+    ap.add_argument("--after", type=int, default=8, help="re-bakes after the walk, each after one training step "
+                    "(one submap changed)")
     ap.add_argument("--width", type=int, default=32, help="network width (the bake's cost is per evaluation)")
     ap.add_argument("--mesh-resolution", type=float, default=0.1)
     ap.add_argument("--fuse-radius", type=float, default=DEFAULT_FUSE_RADIUS,
@@ -60,7 +95,8 @@ def main(argv: list[str] | None = None) -> None:
     torch.set_num_threads(1)
     seq = SyntheticSequence(building=args.building, n_frames=args.frames, H=60, W=80, seed=0)
     p = SubmapPipeline.from_settings("cpu", {"network": {"width": args.width}, "n_rays": 40})
-    e = QueryEngine(device="cpu", bake_threads=1, fuse_radius=args.fuse_radius, measured=args.measured)
+    e = QueryEngine(device="cpu", bake_threads=1, fuse_radius=args.fuse_radius, measured=args.measured,
+                    bake_config=BakeConfig(change_tol=args.change_tol))
     version = 0
     print(f"{args.building}: {args.frames} frames, a keyframe every {args.every}, {args.steps} steps each, "
           f"published every {args.period} keyframes; width {args.width}; measured points "
@@ -82,35 +118,27 @@ def main(argv: list[str] | None = None) -> None:
         if e.state is None or e.state.observed is None or n < args.bake_from:
             continue
         first = e.baked is None
-        for sm in e.state.submaps.submaps.values():  # warm the new networks up (torch's first call)
-            e._implicit(sm.net, np.zeros((64, 3), np.float32), True)
-        t = time.perf_counter()
-        inc = e.bake_now().field
-        t_inc = time.perf_counter() - t
-        # The full bake of the same map with the surfels the incremental one was computed with
-        # (its reference: surfels that moved less than bake_surfel_tol keep their baked geometry).
-        ref_state = e.state.with_surfels(e.baked.surfel_ref, e.state.surfel_version)
-        t = time.perf_counter()
-        full = bake(e.baker.fused_fn(ref_state), e.state.observed, e.baker.config)
-        t_full = time.perf_counter() - t
-        pts = e.state.observed.origin + np.random.default_rng(version).uniform(
-            0, 1, (20_000, 3)) * (e.state.observed.bounds[1] - e.state.observed.origin)
-        fa, _, ca = inc.query(pts, False)
-        fb, _, cb = full.query(pts, False)
-        d = np.abs(fa - fb)[ca & cb]
-        diff, over = (float(d.max()), float(np.mean(d > 0.002))) if len(d) else (0.0, 0.0)
-        assert (ca == cb).all()
-        # What the tolerance costs: the fused field with the newest surfels against the reference's.
-        inside = pts[ca]
-        tol_d = np.abs(e.baker.fused_fn(e.state)(inside)[0] - e.baker.fused_fn(ref_state)(inside)[0])
-        tol_max, tol_over = (float(tol_d.max()), float(np.mean(tol_d > 0.002))) if len(tol_d) else (0.0, 0.0)
+        row = compare(e, version, p.n_keyframes, changed)
         if not first:
-            totals += [inc.stats["evaluations"], t_inc, full.stats["evaluations"], t_full]
-        print(f"| {version} | {p.n_keyframes} | {len(e.state.submaps.submaps)} | {changed} | {inc.stats['blocks']:,} "
-              f"| {inc.stats['evaluations']:,} / {t_inc:.2f} | {full.stats['evaluations']:,} / {t_full:.2f} "
-              f"| {diff:.1e} / {over:.4f} | {tol_max:.1e} / {tol_over:.4f} |", flush=True)
+            totals += row
     print(f"after the first bake, in all: incremental {int(totals[0]):,} evaluations in {totals[1]:.1f} s, full "
           f"{int(totals[2]):,} in {totals[3]:.1f} s ({totals[0] / max(totals[2], 1):.2f} of the evaluations)")
+    if args.after:
+        # The walk done, the mapper refines: each step trains one submap (the one with the fewest
+        # steps per keyframe); publishing after every step, one submap changed per re-bake.
+        print(f"\nafter the walk: {args.after} re-bakes, each after one training step (one submap changed)")
+        after = np.zeros(4)
+        ratios = []
+        for _ in range(args.after):
+            p.step()
+            version += 1
+            changed = feed(e, p.map_messages(version, changed_only=True, epoch=1))
+            row = compare(e, version, p.n_keyframes, changed)
+            after += row
+            ratios.append(row[0] / max(row[2], 1))
+        print(f"after the walk, one submap changed: incremental {int(after[0]):,} evaluations in {after[1]:.1f} s, full "
+              f"{int(after[2]):,} in {after[3]:.1f} s ({after[0] / max(after[2], 1):.2f} of the evaluations; per "
+              f"re-bake {min(ratios):.2f}-{max(ratios):.2f})")
     # The whole map's mesh, tiled, and its peak numpy memory against one tile for the whole box.
     for tile in (64, 100_000):
         e.mesh_tile = tile
