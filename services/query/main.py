@@ -264,6 +264,7 @@ class QueryNode:
         st, bk = self.engine.state, self.engine.baked
         return {"v": protocol.VERSION, "version": st.version if st else None, "epoch": st.epoch if st else None,
                 "baked_version": bk.state.version if bk else None, "bakes": self.engine.baker.bakes,
+                "bake_extensions": self.engine.baker.extensions,
                 "bake_failures": self.engine.baker.failures, "last_bake": self.engine.baker.last,
                 "lag": self.engine.lag(), "answered": self.answered, "errors": self.errors, "busy": self.busy,
                 "queued": self._sdf_jobs.qsize(), "held": self.engine.held,

@@ -46,6 +46,10 @@ class BakedMap:
     surfel_ref: Surfels | None = None  # the surfels its samples were computed with (within bake_surfel_tol)
 
 
+def _nowhere(points: np.ndarray) -> np.ndarray:
+    return np.zeros(len(points), bool)
+
+
 class Baker:
     """Bakes the newest map of ``newest()`` whenever ``map_arrived`` says there is one.
 
@@ -54,7 +58,7 @@ class Baker:
 
     def __init__(self, field: Callable, newest: Callable[[], MapState | None], device: torch.device,
                  chunk_points: int = 65_536, fuse_radius: float = DEFAULT_FUSE_RADIUS,
-                 config: BakeConfig | None = None, threads: int = 2, duty: float = 0.75, nice: int = 10,
+                 config: BakeConfig | None = None, threads: int = 2, duty: float = 0.75, nice: int = 0,
                  surfel_tol: float = 0.001, enabled: bool = True):
         self.field = field
         self.newest = newest
@@ -70,6 +74,7 @@ class Baker:
         self.warm_unknown = False  # 1.6: a planner asked for unknown distances; index each map's observed space
         self.baked: BakedMap | None = None  # swapped whole under _lock; readers take the reference
         self.bakes = 0
+        self.extensions = 0  # bakes of the newly mapped space alone, ahead of a re-bake
         self.failures = 0
         self.last: dict = {}  # the newest bake's figures
         self._lock = threading.Lock()
@@ -147,8 +152,19 @@ class Baker:
         # surfel_tol keep the geometry the reused samples were computed with), so new samples
         # agree with the reused ones also where a tiny move flips a gate (the fusion radius, the
         # measured rule's ramp). A full bake of the new surfels differs from it by those moves.
-        fld = bake(self.fused_fn(st if ref is st.surfels else st.with_surfels(ref, st.surfel_version)), st.observed,
-                   self.config, previous=previous, dirty=dirty)
+        fn = self.fused_fn(st if ref is st.surfels else st.with_surfels(ref, st.surfel_version))
+        if previous is not None and st.submaps is not None and st.observed is not cur.state.observed:
+            # The robot's surroundings first: the space mapped since the bake (its blocks alone,
+            # every sample of the bake kept) answers from the newest map within a fraction of the
+            # re-bake's time, instead of from the networks at every request until it is done.
+            ext = bake(fn, st.observed, self.config, previous=previous, dirty=_nowhere)
+            if ext.stats["evaluations"]:
+                with self._lock:
+                    if self.baked is cur:
+                        self.baked = BakedMap(cur.state, ext, cur.surfel_ref)
+                previous = ext
+                self.extensions += 1
+        fld = bake(fn, st.observed, self.config, previous=previous, dirty=dirty)
         self._warm(st)
         with self._lock:
             cur = self.baked
