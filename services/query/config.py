@@ -48,9 +48,6 @@ class QueryConfig(ServiceConfig):
     bake_fine: int = Field(2, ge=1, le=16, description="baked field: fine cells per block edge where refined")
     bake_tol: float = Field(0.005, gt=0, description="baked field: refine a block whose coarse interpolant misses "
                             "the field at its centre by more (m)")
-    bake_change_tol: float = Field(0.001, ge=0, description="baked field: a re-bake re-evaluates the corners and centre "
-                                   "of every block where the map changed, and keeps the block's fine samples where "
-                                   "none of them moved by more than this (m); 0 = re-evaluate every sample there")
     bake_near_surface: bool = Field(False, description="baked field: also refine every block a surface may cross")
     bake_band: float = Field(0.05, ge=0, description="baked field: extra margin (m) of the near-surface test")
     bake_surfel_tol: float = Field(0.001, ge=0, description="baked field: a re-bake keeps the samples around a surfel "

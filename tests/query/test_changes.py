@@ -9,7 +9,6 @@ import numpy as np
 import torch
 
 from aisdf import query_messages
-from aisdf.baked import BakeConfig
 from aisdf.network import SDFNetwork
 from aisdf.submaps.field import blend
 from aisdf.structure.surfel_types import Surfels
@@ -23,9 +22,8 @@ torch.set_num_threads(1)
 def test_bake_reevaluates_only_what_changed_and_equals_a_full_bake(submap_map):
     m = submap_map
     # A 0.5 m fuse radius: a changed surfel's surroundings (the radius + 5 cm) then stay a
-    # small part of this small map; at the default 2 m they would cover most of it. With
-    # change_tol 0 every sample where the map changed is evaluated again: the full bake's.
-    e = engine_of(m, fuse_radius=0.5, bake_config=BakeConfig(change_tol=0))
+    # small part of this small map; at the default 2 m they would cover most of it.
+    e = engine_of(m, fuse_radius=0.5)
     first = e.bake_now().field
     full_evals = first.stats["evaluations"]
     assert first.stats["reused"] == 0 and full_evals > 1000
@@ -52,7 +50,7 @@ def test_bake_reevaluates_only_what_changed_and_equals_a_full_bake(submap_map):
     third = e.bake_now().field
     assert 0 < third.stats["evaluations"] < 0.5 * full_evals, third.stats
     # The incremental bake is the full bake of the same map.
-    f2 = QueryEngine(device="cpu", fuse_radius=0.5, bake_config=BakeConfig(change_tol=0))
+    f2 = QueryEngine(device="cpu", fuse_radius=0.5)
     for cc in CELLS:
         f2.set_submap(snap2 if cc == c else m["snaps"][cc])
     f2.set_surfels(smap)
@@ -63,46 +61,6 @@ def test_bake_reevaluates_only_what_changed_and_equals_a_full_bake(submap_map):
     e.set_index(index(m["grid"], {cc: (2 if cc == c else 1) for cc in CELLS}, 9))
     bk = e.bake_now()
     assert bk.field is third and bk.state.version == 9
-
-
-def _moved_net(m, c, scale, seed=7):
-    net = m["nets"][c]
-    net2 = SDFNetwork(net.cfg)
-    net2.load_state_dict(net.state_dict())
-    torch.manual_seed(seed)
-    with torch.no_grad():
-        for prm in net2.parameters():
-            prm.add_(scale * torch.randn_like(prm))
-    return snapshot(net2, m["grid"], c, 2, m["observed"][c])
-
-
-def test_a_rebake_keeps_the_fine_samples_of_blocks_that_moved_less_than_change_tol(submap_map):
-    """bake_change_tol: where a changed submap moved the field by at most the tolerance at a
-    block's corners and centre (evaluated again), the block keeps its fine samples; where it
-    moved more, the block is evaluated again as with change_tol 0."""
-    m = submap_map
-    c = (1, -1, 0)
-    pts = band_points(m, 20_000, np.random.default_rng(3))
-    for scale, tol in ((1e-5, 0.002), (3e-3, 0.001)):
-        snap2 = _moved_net(m, c, scale)
-        runs = {}
-        for change_tol in (0.0, tol):
-            e = engine_of(m, fuse_radius=0.5, bake_config=BakeConfig(change_tol=change_tol))
-            first = e.bake_now().field
-            assert e.set_submap(snap2)
-            runs[change_tol] = (first, e.bake_now().field)
-        (_, exact), (first, kept) = runs[0.0], runs[tol]
-        moved = kept.stats["moved_blocks"]
-        d = np.abs(kept.query(pts, False)[0] - exact.query(pts, False)[0])
-        if scale < 1e-4:  # a tiny move: no block moved beyond the tolerance; fine samples kept
-            assert moved == 0 and kept.stats["evaluations"] < 0.5 * exact.stats["evaluations"], kept.stats
-            assert d.max() <= 2 * tol  # the kept samples: within the tolerance of the new field's
-            # outside the changed submap's region, bit for bit the first bake
-            far = ~m["grid"].inside(c, pts, grow=m["grid"].overlap_m + 0.4)
-            np.testing.assert_array_equal(kept.query(pts[far], False)[0], first.query(pts[far], False)[0])
-        else:  # a move of cm: its blocks evaluated again, as change_tol 0 does
-            assert moved > 0 and kept.stats["evaluations"] > 0.9 * exact.stats["evaluations"], kept.stats
-            assert np.mean(d > 1e-6) < 0.05 and d.max() < 0.02
 
 
 def test_surfel_moves_below_the_tolerance_keep_samples_and_never_add_up():

@@ -20,7 +20,6 @@ class BakeConfig:
     band: float = 0.05  # extra margin (m) on the surface-proximity test of the coarse corners
     tol: float = 0.005  # refine a block whose coarse interpolant misses the field at its centre by more (m)
     near_surface: bool = False  # also refine every block a surface may cross
-    change_tol: float = 0.001  # a re-bake keeps a block's fine samples where its corners and centre moved less (m)
 
 
 _CORNERS = list(itertools.product((0, 1), repeat=3))  # a cell's 8 corners as index offsets
@@ -79,9 +78,8 @@ def bake(fn, observed, cfg: BakeConfig | None = None, previous: BakedField | Non
     blocks = np.argwhere(state > 0)
     evals = 0
 
-    def evaluate(pts: np.ndarray, old: np.ndarray | None = None, keep: np.ndarray | None = None) -> np.ndarray:
-        """The field at ``pts``; ``old`` (M, 4) the previous bake's samples there (NaN: none);
-        ``keep`` (M,) bool: dirty points whose old sample is kept all the same."""
+    def evaluate(pts: np.ndarray, old: np.ndarray | None = None) -> np.ndarray:
+        """The field at ``pts``; ``old`` (M, 4) the previous bake's samples there (NaN: none)."""
         nonlocal evals, reused
         out = np.empty((len(pts), 4), np.float32)
         todo = np.ones(len(pts), bool)
@@ -89,8 +87,6 @@ def bake(fn, observed, cfg: BakeConfig | None = None, previous: BakedField | Non
             todo = ~np.isfinite(old).all(axis=1)
             if dirty is not None and (~todo).any():
                 todo[~todo] = np.asarray(dirty(pts[~todo]), bool)
-                if keep is not None:  # (where there is an old sample to keep)
-                    todo &= ~(keep & np.isfinite(old).all(axis=1))
             out[~todo] = old[~todo]
             reused += int((~todo).sum())
         n = int(todo.sum())
@@ -107,8 +103,8 @@ def bake(fn, observed, cfg: BakeConfig | None = None, previous: BakedField | Non
         corner_mask[blocks[:, 0] + a, blocks[:, 1] + b, blocks[:, 2] + c] = True
     corners = np.argwhere(corner_mask)
     C = np.full(tuple(nb + 1) + (4,), np.nan, np.float32)
-    old_c = None if off is None else _take(previous.C, corners + off)
-    C[corners[:, 0], corners[:, 1], corners[:, 2]] = evaluate(origin + corners * B, old_c)
+    C[corners[:, 0], corners[:, 1], corners[:, 2]] = evaluate(
+        origin + corners * B, None if off is None else _take(previous.C, corners + off))
     t_coarse = time.perf_counter() - t0
     # Core blocks: a surface may pass within band of them.
     absf = np.abs(C[..., 0])
@@ -123,20 +119,7 @@ def bake(fn, observed, cfg: BakeConfig | None = None, previous: BakedField | Non
     coarse_only = BakedField(origin, B, (state > 0).astype(np.int8), C, no_fine, np.zeros(tuple(nb + 1), np.float32),
                              np.zeros((0, nf + 1, nf + 1, nf + 1, 4), np.float32), nf)
     centres = origin + (blocks + 0.5) * B
-    old_m = None if off is None else _take(previous.centres, blocks + off)
-    centre_vals = evaluate(centres, old_m)
-    # Where the field moved: a block whose 8 corners and centre (all evaluated again where
-    # dirty) moved by at most change_tol keeps its previous fine samples (``keep`` below).
-    moved = np.ones(tuple(nb), bool)
-    if old_c is not None and cfg.change_tol > 0:
-        OC = np.full(tuple(nb + 1), np.inf, np.float32)
-        OC[corners[:, 0], corners[:, 1], corners[:, 2]] = np.abs(
-            C[corners[:, 0], corners[:, 1], corners[:, 2], 0] - old_c[:, 0])
-        drift = np.full(tuple(nb), np.inf, np.float32)
-        drift[blocks[:, 0], blocks[:, 1], blocks[:, 2]] = np.abs(centre_vals[:, 0] - old_m[:, 0])
-        for a, b, c in _CORNERS:
-            drift = np.fmax(drift, OC[a:a + nb[0], b:b + nb[1], c:c + nb[2]])
-        moved = ~(drift <= cfg.change_tol)  # NaN (no previous sample): moved
+    centre_vals = evaluate(centres, None if off is None else _take(previous.centres, blocks + off))
     M = np.full(tuple(nb) + (4,), np.nan, np.float32)
     M[blocks[:, 0], blocks[:, 1], blocks[:, 2]] = centre_vals
     pred = coarse_only.query(centres, gradient=False)[0]
@@ -192,22 +175,11 @@ def bake(fn, observed, cfg: BakeConfig | None = None, previous: BakedField | Non
                 ok &= fi >= 0
                 if ok.any():
                     old[ok] = previous.F[fi[ok], loc[ok, 0], loc[ok, 1], loc[ok, 2]]
-        keep = None
-        if old is not None and not moved.all():
-            # a fine point is kept when no block holding it moved (it lies on up to 8)
-            hit = np.zeros(len(ulat), bool)
-            mv = moved & (state > 0)
-            for d in _CORNERS:
-                blk = ulat // nf - np.asarray(d)
-                ok = np.all((ulat - blk * nf <= nf) & (blk >= 0) & (blk < nb), axis=1)
-                hit[ok] |= mv[tuple(blk[ok].T)]
-            keep = ~hit
-        vals[todo] = evaluate(origin + ulat * (B / nf), old, keep)
+        vals[todo] = evaluate(origin + ulat * (B / nf), old)
         F[...] = vals[inv.reshape(-1)].reshape(F.shape)
     stats = {"blocks": int(len(blocks)), "fine_blocks": int(len(fblocks)), "core_blocks": int(core.sum()),
              "bent_blocks": int((bent & (state > 0)).sum()), "near_blocks": int((near & (state > 0)).sum()),
-             "evaluations": int(evals), "reused": int(reused),
-             "moved_blocks": int((moved & (state > 0)).sum()), "coarse_s": round(t_coarse, 3),
+             "evaluations": int(evals), "reused": int(reused), "coarse_s": round(t_coarse, 3),
              "bake_s": round(time.perf_counter() - t0, 3)}
     field = BakedField(origin, B, state, C, fidx, A, F, nf, stats, centres=M)
     field.stats["bytes"] = field.nbytes

@@ -24,7 +24,7 @@ import numpy as np
 import torch
 
 from .. import keys, protocol, query_messages
-from ..baked import BakeConfig, bake
+from ..baked import bake
 from ..mapping.frames import Frame
 from ..structure.fusion import DEFAULT_FUSE_RADIUS
 from ..submaps.pipeline import SubmapPipeline
@@ -81,8 +81,6 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--period", type=int, default=2, help="keyframes per publication period")
     ap.add_argument("--bake-from", type=int, default=60, help="first keyframe after which the map is baked (before: "
                     "only published into the engine)")
-    ap.add_argument("--change-tol", type=float, default=0.001, help="the query service's bake_change_tol (m): a "
-                    "re-bake keeps a block's fine samples where its corners and centre moved less; 0: exact")
     ap.add_argument("--after", type=int, default=8, help="re-bakes after the walk, each after one training step "
                     "(one submap changed)")
     ap.add_argument("--width", type=int, default=32, help="network width (the bake's cost is per evaluation)")
@@ -95,8 +93,7 @@ def main(argv: list[str] | None = None) -> None:
     torch.set_num_threads(1)
     seq = SyntheticSequence(building=args.building, n_frames=args.frames, H=60, W=80, seed=0)
     p = SubmapPipeline.from_settings("cpu", {"network": {"width": args.width}, "n_rays": 40})
-    e = QueryEngine(device="cpu", bake_threads=1, fuse_radius=args.fuse_radius, measured=args.measured,
-                    bake_config=BakeConfig(change_tol=args.change_tol))
+    e = QueryEngine(device="cpu", bake_threads=1, fuse_radius=args.fuse_radius, measured=args.measured)
     version = 0
     print(f"{args.building}: {args.frames} frames, a keyframe every {args.every}, {args.steps} steps each, "
           f"published every {args.period} keyframes; width {args.width}; measured points "

@@ -98,7 +98,7 @@ class QueryEngine:
         return cls(cfg.max_points, cfg.chunk_points, cfg.device, cfg.fuse_radius, cfg.mesh_resolution,
                    cfg.mesh_max_cells, cfg.bake,
                    BakeConfig(block=cfg.bake_block, fine=cfg.bake_fine, band=cfg.bake_band, tol=cfg.bake_tol,
-                              near_surface=cfg.bake_near_surface, change_tol=cfg.bake_change_tol), cfg.bake_threads, cfg.bake_duty, cfg.bake_nice,
+                              near_surface=cfg.bake_near_surface), cfg.bake_threads, cfg.bake_duty, cfg.bake_nice,
                    cfg.mesh_tile, cfg.bake_surfel_tol, cfg.measured, cfg.fresh_s, cfg.fresh_busy)
 
     @property
