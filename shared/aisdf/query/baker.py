@@ -75,6 +75,7 @@ class Baker:
         self.baked: BakedMap | None = None  # swapped whole under _lock; readers take the reference
         self.bakes = 0
         self.extensions = 0  # bakes of the newly mapped space alone, ahead of a re-bake
+        self.last_extension: dict = {}  # the newest one's figures
         self.failures = 0
         self.last: dict = {}  # the newest bake's figures
         self._lock = threading.Lock()
@@ -164,6 +165,7 @@ class Baker:
                         self.baked = BakedMap(cur.state, ext, cur.surfel_ref)
                 previous = ext
                 self.extensions += 1
+                self.last_extension = ext.stats
         fld = bake(fn, st.observed, self.config, previous=previous, dirty=dirty)
         self._warm(st)
         with self._lock:
