@@ -41,7 +41,7 @@ class QueryConfig(ServiceConfig):
     fresh_s: float = Field(2.0, ge=0, description="protocol 1.7: once the bake trails the newest map by more than "
                            "this (s), the regions of the submaps that changed since the bake are answered from the "
                            "newest map until the bake catches up; 0 = always")
-    fresh_busy: bool = Field(False, description="freshen (fresh_s) also while sdf requests wait in the queue; false = "
+    fresh_busy: bool = Field(False, description="freshen (fresh_s) also while sdf requests wait for a worker; false = "
                              "planners first: while they wait, answers come from the bake (its version and map_age_s "
                              "in the reply), since an answer from the newest map costs some 40x a baked one")
     bake_block: float = Field(0.2, gt=0, description="baked field: block edge and coarse spacing (m)")

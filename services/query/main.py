@@ -47,7 +47,8 @@ class QueryNode:
         self._sdf_jobs: queue.Queue = queue.Queue(maxsize=cfg.queue_max)
         self.pending = 0  # sdf requests accepted and not answered yet (waiting or being answered)
         self._pending_lock = threading.Lock()
-        self.engine.waiting = lambda: self.pending  # planners first: the bake yields while requests are pending
+        # planners first: while requests wait for a worker, a trailing bake answers
+        self.engine.waiting = lambda: max(0, self.pending - cfg.workers)
         self.ns = cfg.namespace
         self.answered = 0
         self.errors = 0

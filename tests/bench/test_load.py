@@ -5,10 +5,10 @@ from aisdf.bench.load import planners_beside_mapper, report
 
 
 def test_planners_beside_a_training_mapper_are_answered_first(tmp_path):
-    # fresh_s 0: every map newer than the bake makes it trail, so with two planners back to
-    # back (one request pending while the other is answered) the trailing bake answers.
+    # fresh_s 0: every map newer than the bake makes it trail; one worker and two planners back
+    # to back: a request waits while the other is answered, and the trailing bake answers.
     res = planners_beside_mapper(planners=2, seconds=6.0, n_points=2000, keyframes=24, period_s=0.5, warmup_s=6.0,
-                                 query_set=["fresh_s=0"], mapper_set=["training.network.width=32"],
+                                 query_set=["fresh_s=0", "workers=1"], mapper_set=["training.network.width=32"],
                                  log_dir=tmp_path / "logs", say=lambda s: None)
     assert res["answered"] == res["sent"] > 10 and res["lost"] == 0 and res["errors"] == res["timeouts"] == 0
     assert res["mapper_steps"] > 0 and res["keyframes_published"] > 12  # the mapper trained meanwhile

@@ -240,7 +240,7 @@ def test_a_changed_surfel_is_answered_from_the_newest_map(submap_map):
 
 
 def test_planners_first_while_requests_wait_a_trailing_bake_answers(submap_map):
-    """Protocol 1.8: a request answered while other requests wait is not freshened (an answer
+    """Protocol 1.8: a request answered while others wait for a worker is not freshened (an answer
     from the newest map costs some 40x a baked one, and would hold up those waiting): the bake
     answers it, bit for bit, with its own version and age; alone, it is freshened again.
     ``fresh_busy`` keeps freshening under load."""
@@ -253,20 +253,20 @@ def test_planners_first_while_requests_wait_a_trailing_bake_answers(submap_map):
     fresh = changed_region(e, pts)
     assert 0.1 < fresh.mean() < 0.9
 
-    e.waiting = lambda: 3  # this request and two waiting
+    e.waiting = lambda: 2  # two requests wait for a worker
     held = ask(e, pts)
     np.testing.assert_array_equal(held.sdf, before.sdf)
     np.testing.assert_array_equal(held.gradient, before.gradient)
     assert held.baked and held.map_version == 1 and e.held == 1
     assert held.map_age_s >= before.map_age_s
 
-    e.waiting = lambda: 1  # alone: the changed region from the newest map
+    e.waiting = lambda: 0  # none waits: the changed region from the newest map
     alone = ask(e, pts)
     exact = ask(e, pts, exact=True)
     np.testing.assert_allclose(alone.sdf[fresh], exact.sdf[fresh], atol=1e-6)
     assert alone.map_version == 2 and e.held == 1
 
-    e.fresh_busy, e.waiting = True, (lambda: 3)  # freshen under load too
+    e.fresh_busy, e.waiting = True, (lambda: 2)  # freshen under load too
     busy = ask(e, pts)
     np.testing.assert_array_equal(busy.sdf, alone.sdf)
     assert busy.map_version == 2 and e.held == 1

@@ -91,7 +91,7 @@ class QueryEngine:
         self.held = 0  # answers from a bake trailing by more than fresh_s because requests were waiting
         self.baker = Baker(self._field, lambda: self._state, self.device, chunk_points, fuse_radius, bake_config,
                            bake_threads, bake_duty, bake_nice, surfel_tol, enabled=bake)
-        self.waiting: Callable[[], int] = lambda: 0  # sdf requests pending (the service sets it; 0 in-process)
+        self.waiting: Callable[[], int] = lambda: 0  # sdf requests waiting for a worker (the service sets it)
 
     @classmethod
     def from_config(cls, cfg) -> "QueryEngine":
@@ -288,9 +288,9 @@ class QueryEngine:
         """How far answers trail the newest map (``versions``, ``behind_s``), and the bake
         (``bake_versions``, ``bake_behind_s``). A submap map's answers trail by at most
         ``fresh_s``: beyond it the regions that changed since the bake are answered from the
-        newest map (1.7), except for requests answered while others wait (1.8: planners
-        first, the bake answers; counted in ``held``); a one-network map's answers trail as its
-        bake does."""
+        newest map (1.7), except for requests answered while others wait for a worker (1.8:
+        planners first, the bake answers; counted in ``held``); a one-network map's answers
+        trail as its bake does."""
         bake = self.baker.lag()
         st = self._state
         fresh = st is not None and st.submaps is not None and bake["behind_s"] > self.fresh_s
@@ -362,7 +362,7 @@ class QueryEngine:
             state = bk.state
             sdf, grad, covered = bk.field.query(pts, req.gradient)
             trails = self._bake_trails(bk)
-            if trails and not self.fresh_busy and self.waiting() > 1:
+            if trails and not self.fresh_busy and self.waiting() > 0:
                 # Planners first: with requests waiting, the changed regions are not evaluated
                 # afresh; the bake answers, and the reply says its map's version and age.
                 trails = False
