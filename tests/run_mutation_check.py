@@ -76,6 +76,12 @@ BREAKAGES = [
              "            state = bk.state\n",
              "        if req.source == \"fused\" and not req.exact and bk is not None:\n            state = newest\n",
              ("tests/query/test_baked.py",)),
+    Breakage("fresh-under-load", "planners first gone: requests answered while others wait are freshened too",
+             "shared/aisdf/query/engine.py", "            if trails and not self.fresh_busy and self.waiting() > 0:",
+             "            if False:", ("tests/query/test_fresh.py", "tests/bench/test_load.py")),
+    Breakage("new-space-not-first", "a re-bake no longer bakes the newly mapped space first",
+             "shared/aisdf/query/baker.py", "        if previous is not None and st.submaps is not None and st.observed "
+             "is not cur.state.observed:", "        if False:", ("tests/query/test_fresh.py",)),
     Breakage("dropped-acknowledgement", "the mapper adds a keyframe but never acknowledges it",
              "services/mapper/main.py", "            self.counts[\"accepted\"] += 1\n            ok.append(kf.frame_id)\n",
              "            self.counts[\"accepted\"] += 1\n",
