@@ -7,12 +7,13 @@ are rigid and smooth but turned: the map would be built tilted by 90 degrees and
 consecutive frames no longer agree. Two tests on up to ``n`` frames spread over the first
 ``window`` frames:
 
-1. **Gravity** (needs a fixed frame with z up, as REP-103 asks of map/odom): the image's "down"
-   axis (the optical frame's +y) must point roughly along the fixed frame's -z. A camera on a
-   robot or in a hand is roughly upright; the median angle over the frames must be below
-   ``max_down_deg`` (70 degrees). With the optical rotation missing it is 90 degrees for a level
-   camera (the link frame's +y is horizontal), and no correct mount of a forward-looking camera
-   gets there. The share of surface normals (from the depth images) near the vertical is
+1. **Gravity** (assumes a fixed frame with z up, as REP-103 asks of map/odom): the image's
+   "down" axis (the optical frame's +y) should point roughly along the fixed frame's -z. A
+   camera on a robot or in a hand is roughly upright; the median angle over the frames should
+   be below ``max_down_deg`` (70 degrees). With the optical rotation missing it is 90 degrees
+   for a level camera (the link frame's +y is horizontal). But a fixed frame that is not z-up,
+   or a camera pitched up, gets there with a right chain: alone, this is a warning, not a
+   refusal. The share of surface normals (from the depth images) near the vertical is
    reported too.
 2. **Depth consistency** (frame-agnostic): each frame's depth moved into the next sampled
    frame's camera with the poses must agree with that frame's depth better than with no motion
@@ -21,8 +22,9 @@ consecutive frames no longer agree. Two tests on up to ``n`` frames spread over 
    0.7 times the no-motion one in at least half of the pairs.
 
 ``check_frames(frames)`` / ``check_source(src)`` -> :class:`TFCheck` (``ok``, ``message``,
-figures). A source that fails is refused by the frontend unless told otherwise
-(``--no-tf-check``)."""
+figures, ``warning``). Only the depth test's evidence fails a source (the gravity test's
+finding is given with it); a source that fails is refused by the frontend unless told
+otherwise (``--no-tf-check``)."""
 
 from __future__ import annotations
 
@@ -41,9 +43,11 @@ class TFCheck:
     ok: bool
     message: str
     figures: dict = field(default_factory=dict)
+    warning: str | None = None  # a finding that does not fail the check (the gravity test's alone)
 
     def __str__(self) -> str:
-        return ("TF check passed: " if self.ok else "TF check FAILED: ") + self.message
+        return ("TF check passed: " if self.ok else "TF check FAILED: ") + self.message + (
+            f" Warning: {self.warning}." if self.ok and self.warning else "")
 
 
 def _angle_deg(a: np.ndarray, b: np.ndarray) -> float:
@@ -75,7 +79,7 @@ def check_frames(frames: list[dict], up=UP, max_down_deg: float = 70.0, min_moti
         return TFCheck(False, "no frame could be placed, nothing to check")
     up = np.asarray(up, np.float64) / np.linalg.norm(up)
     figs: dict = {"frames": len(frames)}
-    problems = []
+    problems, tilted = [], None
     if gravity:
         downs = [_angle_deg(np.asarray(f["T_WC"])[:3, 1], -up) for f in frames]
         figs["image_down_vs_gravity_deg"] = round(float(np.median(downs)), 1)
@@ -83,7 +87,7 @@ def check_frames(frames: list[dict], up=UP, max_down_deg: float = 70.0, min_moti
             [90.0 - _angle_deg(np.asarray(f["T_WC"])[:3, 2], up) for f in frames])), 1)
         figs["vertical_normals_share"] = round(_vertical_share(frames, up), 3)
         if figs["image_down_vs_gravity_deg"] > max_down_deg:
-            problems.append(
+            tilted = (
                 f"the camera's image 'down' axis (optical +y) points {figs['image_down_vs_gravity_deg']:.0f} degrees "
                 f"away from the fixed frame's down (-z) on median over {len(frames)} frames, and its viewing axis "
                 f"is {figs['optical_axis_elevation_deg']:+.0f} degrees above the horizon: the camera would be lying "
@@ -110,11 +114,21 @@ def check_frames(frames: list[dict], up=UP, max_down_deg: float = 70.0, min_moti
                 f"(median "
                 f"residual {figs['depth_residual_posed_cm']:.1f} cm posed vs {figs['depth_residual_no_motion_cm']:.1f}"
                 f" cm unmoved): the camera's motion in the TF chain is not the motion the images see (a wrong or "
-                f"missing rotation in the chain, or poses of another frame)")
-    if problems:
-        return TFCheck(False, "; and ".join(problems) + ".", figs)
+                f"missing rotation in the chain, typically the camera_link -> optical rotation of REP-103: z forward, x "
+                f"right, y down; or poses of another frame)")
+    if problems:  # the depth disagrees with the poses: refused, with the gravity test's finding
+        return TFCheck(False, "; and ".join(([tilted] if tilted else []) + problems) + ".", figs)
+    warning = None
+    if tilted:
+        warning = (f"the camera's image 'down' axis (optical +y) points {figs['image_down_vs_gravity_deg']:.0f} "
+                   f"degrees away from the fixed frame's -z on median, its viewing axis "
+                   f"{figs['optical_axis_elevation_deg']:+.0f} degrees above the horizon: the fixed frame is not "
+                   f"z-up, or the camera is pitched up or on its side. " + (
+                       "Mapped anyway: the depth images agree with the poses" if pairs else
+                       "Mapped anyway, though too little motion in the first frames to test the depth against the "
+                       "poses"))
     parts = []
-    if gravity:
+    if gravity and not tilted:
         parts.append(f"image 'down' {figs['image_down_vs_gravity_deg']:.0f} deg from the fixed frame's -z, "
                      f"{100 * figs['vertical_normals_share']:.0f}% of surface normals vertical")
     if pairs:
@@ -123,7 +137,7 @@ def check_frames(frames: list[dict], up=UP, max_down_deg: float = 70.0, min_moti
                      f"unmoved)")
     else:
         parts.append("too little motion in the first frames to test depth consistency")
-    return TFCheck(True, "; ".join(parts) + f" (over {len(frames)} frames).", figs)
+    return TFCheck(True, "; ".join(parts) + f" (over {len(frames)} frames).", figs, warning)
 
 
 def sample_indices(n_total: int, n: int = 12, window: int = 90) -> list[int]:
