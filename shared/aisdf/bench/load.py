@@ -29,18 +29,9 @@ from .. import keys, protocol, transport
 from ..client import SdfClient
 from ..keyframes import keyframe_message
 from ..stack import Stack, wait_for
+from .served import rss_mb
 
 NS = "aisdf/bench-load"
-
-
-def rss_mb(pid: int) -> float | None:
-    try:
-        for line in Path(f"/proc/{pid}/status").read_text().splitlines():
-            if line.startswith("VmRSS:"):
-                return int(line.split()[1]) / 1024.0
-    except OSError:
-        return None
-    return None
 
 
 def _pcts_ms(ts) -> dict:
