@@ -5,6 +5,7 @@
         r = c.query(points_W, gradient=True, collision_epsilon=0.3)
         r.sdf, r.gradient, r.collision, r.map_version
         r = c.query(centres, radii=radii, observed=True)   # spheres; r.observed per point
+        r = c.box([0, 0, 0], [2, 2, 1], 0.05, gradient=True)  # a dense window; r.grid("sdf")
 
 Protocol errors come back as :class:`aisdf.protocol.ProtocolError` with ``.code``
 (``bad_request``, ``too_large``, ``no_map``, ``internal``, ``busy``).
@@ -102,6 +103,19 @@ class SdfClient:
         first = min(parts, key=lambda p: (p.map_epoch, p.map_version))
         return query_messages.SdfReply(first.map_version, cat("sdf"), cat("gradient"), cat("collision"), cat("observed"),
                                  all(p.baked for p in parts), first.map_epoch, cat("unknown"))
+
+    def box(self, min_corner, size, resolution: float, gradient: bool = False, observed: bool = False,
+            unknown: bool = False, exact: bool = False, source: str = "fused",
+            collision_epsilon: float | None = None) -> query_messages.SdfReply:
+        """A local distance window (protocol 1.9): the dense grid of samples ``resolution``
+        apart over the world-axis-aligned box ``[min_corner, min_corner + size]``, in one
+        request of a few bytes. ``reply.box`` gives the lattice (origin, resolution, shape);
+        ``reply.grid("sdf")`` is (nx, ny, nz), ``reply.grid("gradient")`` (nx, ny, nz, 3)."""
+        b = query_messages.Box.around(min_corner, size, resolution)
+        req = query_messages.SdfRequest(np.zeros((0, 3), np.float32), gradient, collision_epsilon, source, None,
+                                        observed, exact, unknown, b)
+        msg = transport.query(self._session, self._key(keys.QUERY_SDF), req.to_msg(), self.timeout)
+        return query_messages.SdfReply.from_msg(msg)
 
     def sdf(self, points_W: np.ndarray, source: str = "fused") -> np.ndarray:
         return self.query(points_W, source=source).sdf

@@ -404,7 +404,8 @@ class QueryEngine:
                 unknown = unknown - req.radii.astype(np.float32)
         return query_messages.SdfReply(state.version, sdf.astype(np.float32, copy=False),
                                        grad.astype(np.float32, copy=False) if req.gradient else None, coll, observed,
-                                       baked, state.epoch, unknown, round(time.monotonic() - state.received, 3))
+                                       baked, state.epoch, unknown, round(time.monotonic() - state.received, 3),
+                                       req.box)
 
     def _bake_trails(self, bk: BakedMap) -> bool:
         """Does the bake trail the newest map by more than ``fresh_s`` (since the first newer
