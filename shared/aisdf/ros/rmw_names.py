@@ -155,6 +155,7 @@ SENSOR_QOS = QoS(reliability=BEST_EFFORT, depth=5)  # rclcpp::SensorDataQoS
 TF_QOS = QoS(depth=100)  # tf2_ros::DynamicListenerQoS / TransformBroadcaster
 TF_STATIC_QOS = QoS(durability=TRANSIENT_LOCAL, depth=1)  # tf2_ros::StaticBroadcasterQoS
 TF_STATIC_LISTENER_QOS = QoS(durability=TRANSIENT_LOCAL, depth=100)  # tf2_ros::StaticListenerQoS
+SERVICES_QOS = QoS(depth=10)  # rmw_qos_profile_services_default
 
 
 def qos_to_keyexpr(q: QoS) -> str:

@@ -1,5 +1,5 @@
-"""A ROS 2 node over rmw_zenoh in Python: discovery of the ROS graph, nodes, publishers and
-subscriptions that ROS 2 nodes using the Zenoh middleware (``RMW_IMPLEMENTATION=
+"""A ROS 2 node over rmw_zenoh in Python: discovery of the ROS graph, nodes, publishers,
+subscriptions, service servers and clients (:mod:`aisdf.ros.rmw_services`) that ROS 2 nodes using the Zenoh middleware (``RMW_IMPLEMENTATION=
 rmw_zenoh_cpp``) see as their own, without ROS installed. The wire conventions (keys,
 QoS, attachments, liveliness tokens; see that module's docstring for their sources) live
 in :mod:`aisdf.ros.rmw_names` and are re-exported here.
@@ -13,7 +13,7 @@ import re
 import threading
 import time
 from dataclasses import dataclass, field
-from typing import Any, Callable
+from typing import TYPE_CHECKING, Any, Callable
 
 from .rmw_names import (  # noqa: F401 - the conventions, re-exported: callers use rmw_zenoh.X
     ADMIN_SPACE, NODE, PUBLISHER, SUBSCRIPTION, SERVICE, CLIENT, ENTITY_KINDS, HUMBLE_TYPE_HASH, GID_SIZE,
@@ -21,9 +21,12 @@ from .rmw_names import (  # noqa: F401 - the conventions, re-exported: callers u
     DURABILITY_SYSTEM_DEFAULT, TRANSIENT_LOCAL, VOLATILE, HISTORY_SYSTEM_DEFAULT, KEEP_LAST, KEEP_ALL,
     LIVELINESS_SYSTEM_DEFAULT, LIVELINESS_AUTOMATIC, INFINITE, DISTROS_WITH_HASH, TYPESTORES, mangle,
     demangle, dds_type_name, ros_type_name, qualify, type_hash, topic_key, parse_topic_key, domain_from_env,
-    QoS, DEFAULT_QOS, SENSOR_QOS, TF_QOS, TF_STATIC_QOS, TF_STATIC_LISTENER_QOS, qos_to_keyexpr,
+    QoS, DEFAULT_QOS, SENSOR_QOS, TF_QOS, TF_STATIC_QOS, TF_STATIC_LISTENER_QOS, SERVICES_QOS, qos_to_keyexpr,
     keyexpr_to_qos, Attachment, entity_gid, Entity, graph_key,
 )
+
+if TYPE_CHECKING:
+    from .rmw_services import ServiceClient, ServiceServer
 
 log = logging.getLogger("aisdf.ros.rmw_zenoh")
 
@@ -104,10 +107,15 @@ class Node:
         self.entity = Entity(self.domain_id, self.zid, self.node_id, self.node_id, NODE, enclave, namespace, name)
         self._token = session.liveliness().declare_token(self.entity.key())
 
-    def _topic_entity(self, kind: str, topic: str, msgtype: str, qos: QoS) -> Entity:
+    def _topic_entity(self, kind: str, topic: str, msgtype: str, qos: QoS, hash_: str | None = None) -> Entity:
         return Entity(self.domain_id, self.zid, self.node_id, str(next(self._ids)), kind, self.enclave,
                       self.namespace, self.name, qualify(topic, self.namespace), dds_type_name(msgtype),
-                      type_hash(self.typestore, msgtype, self.distro), qos)
+                      hash_ or type_hash(self.typestore, msgtype, self.distro), qos)
+
+    def _service_entity(self, kind: str, name: str, srvtype: str, qos: QoS) -> Entity:
+        from .interfaces import service_type_hash
+
+        return self._topic_entity(kind, name, srvtype, qos, service_type_hash(self.typestore, srvtype, self.distro))
 
     def create_publisher(self, topic: str, msgtype: str, qos: QoS = DEFAULT_QOS) -> "Publisher":
         p = Publisher(self, self._topic_entity(PUBLISHER, topic, msgtype, qos), msgtype)
@@ -119,6 +127,24 @@ class Node:
         s = Subscription(self, self._topic_entity(SUBSCRIPTION, topic, msgtype, qos), msgtype, callback, any_hash)
         self._entities.append(s)
         return s
+
+    def create_service(self, name: str, srvtype: str, handler: Callable[[Any], Any],
+                       qos: QoS = SERVICES_QOS) -> "ServiceServer":
+        """A service server: ``handler(request) -> response`` (rosbags message objects of
+        ``<srvtype>_Request`` / ``_Response``; see :class:`aisdf.ros.rmw_services.ServiceServer`)."""
+        from .rmw_services import ServiceServer
+
+        s = ServiceServer(self, self._service_entity(SERVICE, name, srvtype, qos), srvtype, handler)
+        self._entities.append(s)
+        return s
+
+    def create_client(self, name: str, srvtype: str, qos: QoS = SERVICES_QOS) -> "ServiceClient":
+        """A service client: ``client.call(request, timeout)`` -> the response."""
+        from .rmw_services import ServiceClient
+
+        c = ServiceClient(self, self._service_entity(CLIENT, name, srvtype, qos), srvtype)
+        self._entities.append(c)
+        return c
 
     def close(self) -> None:
         for e in reversed(self._entities):
