@@ -22,6 +22,7 @@ Zenoh wiring of an :class:`aisdf.mapper.Mapper` (``mapper: submaps`` or ``single
   (kept in the checkpoint directory), so receivers that only know ``version`` take it too.
 * ``info/mapper`` (extension, not part of protocol v1): a map of counters and the
   per-module timings, for the demo and operators.
+* ``control/mapper/save`` and ``control/mapper/load`` (extension): map files, ``aisdf.mapfiles``.
 """
 
 from __future__ import annotations
@@ -37,7 +38,7 @@ from pathlib import Path
 import torch
 import zenoh
 
-from aisdf import keys, protocol, transport
+from aisdf import keys, mapfiles, protocol, transport
 from aisdf.config import add_common_args, config_from_args, service_setup
 from aisdf.mapper import Mapper
 from aisdf.mapper.factory import make_mapper, restore_mapper
@@ -62,6 +63,7 @@ class MapperNode:
             surfel_loss=cfg.surfel_loss, surfel_bounds=cfg.surfel_bounds, measured=cfg.measured, submaps=cfg.submap)
         self.pending: collections.deque = collections.deque()
         self.lock = threading.Lock()
+        self.train_lock = threading.Lock()  # held through each training step; a map is saved or swapped between
         self.counts = {"received": 0, "rejected": 0, "dropped": 0, "accepted": 0, "duplicates": 0}
         self.version = 0
         self.epoch = 0
@@ -132,14 +134,17 @@ class MapperNode:
     def is_seen(self, sensor: str, frame_id: int) -> bool:
         return (sensor, frame_id) in self.seen or frame_id in self._seen_ids
 
+    def checkpoint(self) -> dict:
+        return {"pipeline": self.pipeline.checkpoint(), "version": self.version, "epoch": self.epoch,
+                "seen": sorted(self.seen)}
+
     def save_checkpoint(self) -> None:
         path = self._ckpt_path()
         if path is None:
             return
         path.parent.mkdir(parents=True, exist_ok=True)
         tmp = path.with_suffix(".tmp")
-        torch.save({"pipeline": self.pipeline.checkpoint(), "version": self.version, "epoch": self.epoch,
-                    "seen": sorted(self.seen)}, tmp)
+        torch.save(self.checkpoint(), tmp)
         tmp.replace(path)
         if self.journal is not None:
             self.journal.clear()  # the checkpoint holds its keyframes now
@@ -231,23 +236,50 @@ class MapperNode:
         last_pub = last_ckpt = time.monotonic()
         dirty = False
         while not self._stop.is_set():
-            self._add_pending()
-            if not self.pipeline.ready:
-                self._stop.wait(self.cfg.idle_sleep_s)
-                continue
-            try:
-                self.pipeline.step()
-                dirty = True
-            except Exception:  # noqa: BLE001 - keep serving the last good map
-                log.exception("training step failed")
-                self._stop.wait(1.0)
-            now = time.monotonic()
-            if dirty and now - last_pub >= self.cfg.snapshot_period_s:
-                self._publish()
-                last_pub, dirty = now, False
-            if self.cfg.checkpoint_dir and now - last_ckpt >= self.cfg.checkpoint_period_s:
-                self.save_checkpoint()
-                last_ckpt = now
+            with self.train_lock:
+                self._add_pending()
+                pause = 0.0 if self.pipeline.ready else self.cfg.idle_sleep_s
+                if not pause:
+                    try:
+                        self.pipeline.step()
+                        dirty = True
+                    except Exception:  # noqa: BLE001 - keep serving the last good map
+                        log.exception("training step failed")
+                        pause = 1.0
+                    now = time.monotonic()
+                    if dirty and now - last_pub >= self.cfg.snapshot_period_s:
+                        self._publish()
+                        last_pub, dirty = now, False
+                    if self.cfg.checkpoint_dir and now - last_ckpt >= self.cfg.checkpoint_period_s:
+                        self.save_checkpoint()
+                        last_ckpt = now
+            if pause:
+                self._stop.wait(pause)
+
+    # ------------------------------------------------------------------ map files
+
+    def on_save(self, _req: dict) -> dict:
+        """``control/mapper/save``: the map as a map file (``aisdf.mapfiles``)."""
+        with self.train_lock:
+            if not self.pipeline.n_keyframes:
+                raise protocol.ProtocolError("no_map", "the mapper has no keyframes yet")
+            return mapfiles.save_reply(self.checkpoint(), self.pipeline)
+
+    def on_load(self, req: dict) -> dict:
+        """``control/mapper/load``: checked and restored first (a bad one changes nothing), swapped in
+        between training steps in a new epoch (versions go on above ours), checkpointed, published."""
+        new = mapfiles.read_load_request(req)
+        with self.train_lock:
+            with self.lock:
+                self.pipeline, self.seen, self._seen_ids = new.pipeline, new.seen, set()
+                self.epoch = max(int(time.time() * 1000), self.epoch + 1)
+                self.version = max(self.version, new.version)
+                self._latest.clear()
+                self._published_all = False
+            self.save_checkpoint()  # the journal's keyframes were the old map's
+            self._publish()  # saves the new epoch as this incarnation's
+            log.info("loaded a map of %d keyframes in epoch %d", new.pipeline.n_keyframes, self.epoch)
+            return mapfiles.load_reply(self.pipeline, self.version, self.epoch)
 
     # ------------------------------------------------------------------ queries
 
@@ -293,6 +325,8 @@ class MapperNode:
             s.declare_queryable(keys.key(self.ns, keys.MAP_INDEX), self._latest_of(keys.MAP_INDEX)),
             s.declare_queryable(keys.key(self.ns, keys.MAP_SUBMAPS) + "/**", self._on_submaps_query),
             transport.serve(s, keys.key(self.ns, INFO_KEY), lambda _req: self.info(), allow_empty=True),
+            transport.serve(s, keys.key(self.ns, mapfiles.SAVE_KEY), self.on_save, allow_empty=True),
+            transport.serve(s, keys.key(self.ns, mapfiles.LOAD_KEY), self.on_load),
             s.liveliness().declare_token(keys.status_key(self.ns, "mapper", uuid.uuid4().hex[:8])),
         ]
         if self.pipeline.n_keyframes:

@@ -1,4 +1,4 @@
-"""``aisdf``: the umbrella command (``demo``, ``view``, ``bench``)."""
+"""``aisdf``: the umbrella command (``demo``, ``view``, ``map``, ``bench``)."""
 
 from __future__ import annotations
 
@@ -86,6 +86,12 @@ def main(argv: list[str] | None = None) -> None:
 
     _view_arguments(v)
     v.set_defaults(fn=_view)
+
+    m = sub.add_parser("map", help="save, load and export the map of a running stack (aisdf map save|load|export)",
+                       description="Map files of a running stack: `save DIR`, `load DIR`, `export --mesh/--surfels`.")
+    from .mapcli import add_arguments as _map_arguments
+
+    _map_arguments(m)
 
     b = sub.add_parser("bench", help="benchmarks: `aisdf bench` = the paper's tables; `aisdf bench query`",
                        description="Without a subcommand: the paper's Tables I-III side by side on the same frames "
