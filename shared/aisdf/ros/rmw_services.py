@@ -24,8 +24,9 @@ import itertools
 import logging
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Any, Callable
+from typing import Any
 
 from .interfaces import ensure_service, request_type, response_type
 from .rmw_names import ADMIN_SPACE, Attachment, Entity, entity_gid, mangle, topic_key
@@ -70,7 +71,7 @@ class ServiceServer:
                 return
             try:
                 self._answer(query)
-            except Exception:  # noqa: BLE001 - never let one request stop the server
+            except Exception:  # never let one request stop the server
                 log.exception("error answering a %s request on %s", self.srvtype, self.key)
             finally:
                 query.drop()
@@ -102,13 +103,13 @@ class ServiceServer:
         try:
             response = self.handler(request)
             cdr = self.node.typestore.serialize_cdr(response, self.response_type)
-        except Exception as e:  # noqa: BLE001
+        except Exception as e:
             log.exception("service %s: the handler failed on request %d", self.entity.topic, att.sequence_number)
             self._error(query, "failed", f"the {self.srvtype} handler failed: {type(e).__name__}: {e}")
             return
         reply_att = Attachment(att.sequence_number, time.time_ns(), att.gid)
+        self.counts.answered += 1  # before the reply: a caller that has it sees it counted
         query.reply(self.key, bytes(cdr), attachment=reply_att.to_bytes())
-        self.counts.answered += 1
 
     def close(self) -> None:
         if self._token is not None:

@@ -1,8 +1,9 @@
 """A ROS 2 node over rmw_zenoh in Python: discovery of the ROS graph, nodes, publishers,
-subscriptions, service servers and clients (:mod:`aisdf.ros.rmw_services`) that ROS 2 nodes using the Zenoh middleware (``RMW_IMPLEMENTATION=
-rmw_zenoh_cpp``) see as their own, without ROS installed. The wire conventions (keys,
-QoS, attachments, liveliness tokens; see that module's docstring for their sources) live
-in :mod:`aisdf.ros.rmw_names` and are re-exported here.
+subscriptions, service servers and clients (:mod:`aisdf.ros.rmw_services`) that ROS 2 nodes
+using the Zenoh middleware (``RMW_IMPLEMENTATION=rmw_zenoh_cpp``) see as their own, without
+ROS installed. The wire conventions (keys, QoS, attachments, liveliness tokens; see that
+module's docstring for their sources) live in :mod:`aisdf.ros.rmw_names` and are re-exported
+here.
 """
 
 from __future__ import annotations
