@@ -1,0 +1,343 @@
+"""``aisdf ros2``: the map for ROS 2, over rmw_zenoh: a node (``aisdf`` by default) publishing
+
+* ``/aisdf/occupancy_grid`` (``nav_msgs/OccupancyGrid``, reliable, transient local, depth 1,
+  as Nav2's map server): the height band above the floor sliced from the SDF
+  (:mod:`aisdf.ros.slices`), refreshed at ``rate_hz`` where the map changed;
+* ``/aisdf/esdf_pointcloud`` (``sensor_msgs/PointCloud2``): the same slice's clearance per
+  observed column, ``x y z intensity`` as nvblox's ``static_esdf_pointcloud``;
+* ``/aisdf/surfels`` (``visualization_msgs/MarkerArray``, transient local): one cube per
+  planar surfel, coloured by Atlanta direction, whenever the surfel map changes;
+* ``/aisdf/mesh`` (``visualization_msgs/Marker``, triangle list, transient local): the zero
+  level set every ``mesh_period_s`` while the map changes;
+
+and serving the ROS 2 services of :mod:`aisdf.ros.outputs_services` (the distance window,
+save and load). It is a client of the AiSDF protocol like any planner: it asks the query
+service (``query/sdf``, ``query/mesh``) and follows ``map/surfels`` and ``map/index``.
+
+**Where the map changed.** The grid is kept in tiles of ``tile`` x ``tile`` columns anchored
+in the ground plane. Each tick a one-point request tells the map version; when it moved, the
+tiles a changed submap's extended box (from ``map/index``, grown by ``fuse_margin_m``) covers
+are sampled again, and new tiles as the map grows. With a one-network map, a new mapper
+incarnation or a moved floor every tile is; and every ``full_refresh_s`` all of them, for
+what the index does not show (surfels and measured points near a changed submap).
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+from pydantic import Field
+
+from .. import keys, protocol, query_messages, transport
+from ..config import ServiceConfig
+from ..submaps.grid import SubmapGrid, parse_cell_id
+from . import outmsgs, slices
+from . import rmw_zenoh as rz
+from .outputs_services import MapServices
+
+log = logging.getLogger("aisdf.ros.outputs")
+
+
+class Ros2OutputsConfig(ServiceConfig):
+    """Settings of ``aisdf ros2``."""
+
+    ros_connect: list[str] = Field(default_factory=lambda: [rz.DEFAULT_ROUTER],
+                                   description="Zenoh router(s) of the ROS 2 network (rmw_zenoh's default)")
+    ros_zenoh_config: Path | None = Field(None, description="Zenoh session file for the ROS side "
+                                          "(as ZENOH_SESSION_CONFIG_URI)")
+    domain_id: int = Field(default_factory=rz.domain_from_env, ge=0, le=232, description="ROS_DOMAIN_ID")
+    distro: str = Field("jazzy", description="ROS 2 distribution: message definitions and type hashes")
+    node_name: str = Field("aisdf", description="the node's name; topics are /<node>/... under the namespace")
+    ros_namespace: str = Field("/", description="the node's namespace")
+    frame_id: str = Field("map", description="the fixed frame of the keyframes' poses (the messages' frame)")
+    resolution: float = Field(0.05, gt=0, description="grid cell (m)")
+    band: tuple[float, float] = Field((0.1, 1.0), description="heights above the floor sliced (m)")
+    robot_radius: float = Field(0.2, ge=0, description="occupied where the clearance is below this (m)")
+    floor_height: float | None = Field(None, description="the floor's height along up; None: from the surfels")
+    up: tuple[float, float, float] | None = Field(None, description="the world's up direction; None: +z when the "
+                                                  "Atlanta vertical is within 30 degrees of z, else from the surfels")
+    rate_hz: float = Field(1.0, gt=0, description="how often the grid and the slice are refreshed")
+    tile: int = Field(64, ge=4, description="columns per tile side (tiles are re-sampled where the map changed)")
+    fuse_margin_m: float = Field(0.3, ge=0, description="a changed submap's box grown by this (fused answers)")
+    full_refresh_s: float = Field(30.0, gt=0, description="every tile re-sampled at least this often")
+    mesh_period_s: float = Field(10.0, gt=0, description="how often the mesh is published while the map changes")
+    mesh_resolution: float = Field(0.1, gt=0, description="the mesh's marching-cubes resolution (m)")
+    map_dir: Path = Field(Path("maps"), description="where /aisdf/save_map writes and /aisdf/load_map reads")
+    timeout_s: float = Field(30.0, gt=0, description="timeout of requests to the query service")
+
+
+class MapOutputs:
+    """The node's work, on an open AiSDF session and a :class:`rz.Node`."""
+
+    def __init__(self, cfg: Ros2OutputsConfig, session, node: rz.Node):
+        self.cfg, self.session, self.node, self.ts = cfg, session, node, node.typestore
+        latched = rz.QoS(durability=rz.TRANSIENT_LOCAL, depth=1)
+        base = cfg.node_name
+        self.pub_grid = node.create_publisher(f"{base}/occupancy_grid", "nav_msgs/msg/OccupancyGrid", latched)
+        self.pub_cloud = node.create_publisher(f"{base}/esdf_pointcloud", "sensor_msgs/msg/PointCloud2",
+                                               rz.QoS(depth=1))
+        self.pub_surfels = node.create_publisher(f"{base}/surfels", "visualization_msgs/msg/MarkerArray", latched)
+        self.pub_mesh = node.create_publisher(f"{base}/mesh", "visualization_msgs/msg/Marker", latched)
+        self._lock = threading.Lock()
+        self.surfel_map: protocol.SurfelMap | None = None
+        self.index: protocol.SubmapIndex | None = None
+        self._index_seen: dict[str, int] = {}  # submap id -> version at the last grid
+        self.ground: slices.Ground | None = None
+        self.tiles: dict[tuple[int, int], slices.Slice] = {}
+        self.version: tuple[int, int] | None = None  # (epoch, version) of the last grid
+        self._surfels_sent: tuple[int, int] | None = None
+        self._mesh_sent: tuple[int, int] | None = None
+        self._last_full = self._last_mesh = 0.0
+        self.counts = {"grids": 0, "tiles": 0, "clouds": 0, "surfel_maps": 0, "meshes": 0, "errors": 0}
+        self.last_grid: np.ndarray | None = None
+        self._decls = [self._follow(keys.MAP_SURFELS, self._on_surfels), self._follow(keys.MAP_INDEX, self._on_index)]
+
+    # ------------------------------------------------------------------ following the map
+
+    def _follow(self, name: str, fn):
+        def cb(sample):
+            try:
+                fn(protocol.unpack(transport.payload_bytes(sample.payload)))
+            except (protocol.ProtocolError, ValueError, KeyError, TypeError) as e:
+                log.warning("skipping a malformed message on %s: %s", name, e)
+
+        return self.session.declare_subscriber(keys.key(self.cfg.namespace, name), cb)
+
+    def _on_surfels(self, msg) -> None:
+        sm = protocol.SurfelMap.from_msg(msg)
+        with self._lock:
+            if self.surfel_map is None or (sm.epoch, sm.version) >= (self.surfel_map.epoch, self.surfel_map.version):
+                self.surfel_map = sm
+
+    def _on_index(self, msg) -> None:
+        idx = protocol.SubmapIndex.from_msg(msg)
+        with self._lock:
+            if self.index is None or (idx.epoch, idx.version) >= (self.index.epoch, self.index.version):
+                self.index = idx
+
+    def _catch_up(self) -> None:
+        """A late joiner: the latest surfel map and index with a get."""
+        for name, fn in ((keys.MAP_SURFELS, self._on_surfels), (keys.MAP_INDEX, self._on_index)):
+            msg = transport.get_latest(self.session, keys.key(self.cfg.namespace, name), timeout=1.0)
+            if msg is not None:
+                try:
+                    fn(msg)
+                except (protocol.ProtocolError, ValueError, KeyError, TypeError) as e:
+                    log.warning("skipping a malformed %s: %s", name, e)
+
+    def _ask(self, req: query_messages.SdfRequest) -> query_messages.SdfReply:
+        msg = transport.query(self.session, keys.key(self.cfg.namespace, keys.QUERY_SDF), req.to_msg(),
+                              self.cfg.timeout_s)
+        return query_messages.SdfReply.from_msg(msg)
+
+    # ------------------------------------------------------------------ the grid
+
+    def _tile_range(self) -> tuple[np.ndarray, np.ndarray] | None:
+        ext = slices.surfel_extent(self.ground, self.surfel_map.surfels)
+        if ext is None:
+            return None
+        span = self.cfg.tile * self.cfg.resolution
+        return np.floor(ext[0] / span).astype(int), np.floor(ext[1] / span).astype(int)
+
+    def _changed_tiles(self, idx: protocol.SubmapIndex | None) -> set[tuple[int, int]]:
+        """Tiles a submap whose version moved since the last grid covers."""
+        if idx is None:
+            return set()
+        grid = SubmapGrid.from_msg(idx.grid)
+        span = self.cfg.tile * self.cfg.resolution
+        out: set[tuple[int, int]] = set()
+        for sid, meta in idx.submaps.items():
+            if self._index_seen.get(sid) == int(meta["version"]):
+                continue
+            g = self.ground.to_grid(grid.corners_W(parse_cell_id(sid), grow=grid.overlap_m + self.cfg.fuse_margin_m))
+            lo, hi = np.floor(g[:, :2].min(0) / span).astype(int), np.floor(g[:, :2].max(0) / span).astype(int)
+            out.update((i, j) for i in range(lo[0], hi[0] + 1) for j in range(lo[1], hi[1] + 1))
+        return out
+
+    def sample_tile(self, t: tuple[int, int]) -> slices.Slice:
+        """The band over one tile's columns, from the query service (one request)."""
+        cfg, T = self.cfg, self.cfg.tile
+        levels = slices.band_levels(cfg.band, cfg.resolution)
+        i = (t[0] * T + np.arange(T)) * cfg.resolution
+        j = (t[1] * T + np.arange(T)) * cfg.resolution
+        g = np.stack(np.meshgrid(i, j, levels, indexing="ij"), axis=-1).reshape(-1, 3)
+        rep = self._ask(query_messages.SdfRequest(self.ground.to_world(g).astype(np.float32), observed=True))
+        shape = (T, T, len(levels))
+        return slices.slice_columns(rep.sdf.reshape(shape), rep.observed.reshape(shape), cfg.resolution)
+
+    def refresh_grid(self, now: float) -> bool:
+        """Re-sample what changed and publish the grid and the slice; True when published."""
+        with self._lock:
+            smap, idx = self.surfel_map, self.index
+        if smap is None:
+            return False
+        ground = slices.ground_from_surfels(smap.vertical, smap.surfels, self.cfg.floor_height, self.cfg.up)
+        if ground.height is None:
+            log.info("no floor in the surfel map yet: no occupancy grid")
+            return False
+        probe = self._ask(query_messages.SdfRequest(ground.to_world(np.zeros((1, 3))).astype(np.float32)))
+        version = (probe.map_epoch, probe.map_version)
+        moved = (self.ground is None or not np.allclose(ground.R, self.ground.R, atol=1e-3)
+                 or abs(ground.height - self.ground.height) > self.cfg.resolution / 2)
+        if moved:
+            self.ground, self.tiles = ground, {}
+        rng = self._tile_range()
+        if rng is None:
+            return False
+        lo, hi = rng
+        wanted = {(a, b) for a in range(lo[0], hi[0] + 1) for b in range(lo[1], hi[1] + 1)}
+        new = version != self.version
+        if moved or (new and (self.version is None or version[0] != self.version[0] or idx is None
+                              or now - self._last_full >= self.cfg.full_refresh_s)):
+            dirty = wanted  # everything: a new incarnation, one network, the floor moved, or the periodic refresh
+            self._last_full = now
+        else:
+            dirty = (wanted - set(self.tiles)) | (self._changed_tiles(idx) & wanted if new else set())
+        if not dirty and not new:
+            return False
+        for t in sorted(dirty):
+            self.tiles[t] = self.sample_tile(t)
+        self.counts["tiles"] += len(dirty)
+        if idx is not None:
+            self._index_seen = {sid: int(m["version"]) for sid, m in idx.submaps.items()}
+        self.version = version
+        self.publish_grid(lo, hi)
+        return True
+
+    def assemble(self, lo, hi) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(obstacle, observed, origin_xy) over tiles lo..hi (missing tiles: unobserved)."""
+        T = self.cfg.tile
+        nx, ny = (hi[0] - lo[0] + 1) * T, (hi[1] - lo[1] + 1) * T
+        obstacle, observed = np.zeros((nx, ny), bool), np.zeros((nx, ny), bool)
+        for (a, b), s in self.tiles.items():
+            if lo[0] <= a <= hi[0] and lo[1] <= b <= hi[1]:
+                x, y = (a - lo[0]) * T, (b - lo[1]) * T
+                obstacle[x:x + T, y:y + T], observed[x:x + T, y:y + T] = s.obstacle, s.observed
+        return obstacle, observed, np.array([lo[0] * T, lo[1] * T]) * self.cfg.resolution
+
+    def publish_grid(self, lo, hi) -> None:
+        cfg = self.cfg
+        obstacle, observed, origin = self.assemble(lo, hi)
+        grid, clear = slices.occupancy(obstacle, observed, cfg.resolution, cfg.robot_radius)
+        stamp = time.time_ns()
+        self.pub_grid.publish(outmsgs.occupancy_grid(self.ts, grid, self.ground, origin, cfg.resolution,
+                                                     cfg.frame_id, stamp))
+        self.last_grid = grid
+        self.counts["grids"] += 1
+        ij = np.argwhere(observed)
+        g = np.concatenate([origin + ij * cfg.resolution, np.full((len(ij), 1), cfg.band[0])], axis=1)
+        d = np.minimum(clear[observed], 1e3)
+        self.pub_cloud.publish(outmsgs.distance_cloud(self.ts, self.ground.to_world(g), d, cfg.frame_id, stamp))
+        self.counts["clouds"] += 1
+
+    # ------------------------------------------------------------------ surfels and mesh
+
+    def publish_surfels(self) -> bool:
+        with self._lock:
+            sm = self.surfel_map
+        if sm is None or self._surfels_sent == (sm.epoch, sm.version):
+            return False
+        self.pub_surfels.publish(outmsgs.surfel_markers(self.ts, sm.surfels, self.cfg.frame_id, time.time_ns()))
+        self._surfels_sent = (sm.epoch, sm.version)
+        self.counts["surfel_maps"] += 1
+        return True
+
+    def publish_mesh(self, now: float) -> bool:
+        if self.version is None or self.version == self._mesh_sent or now - self._last_mesh < self.cfg.mesh_period_s:
+            return False
+        msg = transport.query(self.session, keys.key(self.cfg.namespace, keys.QUERY_MESH),
+                              query_messages.MeshRequest(self.cfg.mesh_resolution).to_msg(), max(60.0, self.cfg.timeout_s))
+        rep = query_messages.MeshReply.from_msg(msg)
+        self.pub_mesh.publish(outmsgs.mesh_marker(self.ts, rep.vertices, rep.faces, self.cfg.frame_id, time.time_ns()))
+        self._mesh_sent, self._last_mesh = self.version, now
+        self.counts["meshes"] += 1
+        return True
+
+    def tick(self, now: float | None = None) -> None:
+        """One round: surfels, the grid and the slice where the map changed, the mesh when due.
+        Errors (no map yet, a busy or absent query service) are logged; the next tick retries."""
+        now = time.monotonic() if now is None else now
+        for step in (self.publish_surfels, lambda: self.refresh_grid(now), lambda: self.publish_mesh(now)):
+            try:
+                step()
+            except protocol.ProtocolError as e:
+                log.info("the query service answered %s: %s", e.code, e.message)
+                break
+            except TimeoutError as e:
+                log.warning("no answer from the query service: %s", e)
+                break
+            except Exception:  # noqa: BLE001 - the node goes on
+                self.counts["errors"] += 1
+                log.exception("publishing the map for ROS 2 failed")
+
+    def run(self, stop: threading.Event) -> None:
+        self._catch_up()
+        period = 1.0 / self.cfg.rate_hz
+        while not stop.is_set():
+            t0 = time.monotonic()
+            self.tick(t0)
+            stop.wait(max(0.0, period - (time.monotonic() - t0)))
+
+    def close(self) -> None:
+        for d in self._decls:
+            d.undeclare()
+        self._decls = []
+
+
+def main(cfg: Ros2OutputsConfig, stop: threading.Event | None = None) -> None:
+    stop = stop or threading.Event()
+    with transport.open_session(cfg.zenoh) as session, \
+            rz.open_ros_session(cfg.ros_connect, str(cfg.ros_zenoh_config) if cfg.ros_zenoh_config else None) as ros:
+        node = rz.Node(ros, cfg.node_name, cfg.ros_namespace, cfg.domain_id, cfg.distro)
+        out = MapOutputs(cfg, session, node)
+        services = MapServices(cfg, session, node)
+        log.info("ROS 2 node %s%s up on domain %d (%s); map frame %s", cfg.ros_namespace.rstrip("/") + "/",
+                 cfg.node_name, cfg.domain_id, cfg.distro, cfg.frame_id)
+        try:
+            out.run(stop)
+        finally:
+            out.close()
+            services.close()
+            node.close()
+
+
+def cli(argv: list[str] | None = None) -> int:
+    import argparse
+
+    from ..config import add_common_args, config_from_args, service_setup
+
+    p = argparse.ArgumentParser(prog="aisdf ros2", description="the map for ROS 2 over rmw_zenoh: occupancy grid, "
+                                "ESDF slice, surfel markers and mesh topics; distance window, save and load services")
+    add_common_args(p)
+    r = p.add_argument_group("ROS 2 side (any field with --set)")
+    r.add_argument("--ros-connect", action="append", metavar="ENDPOINT",
+                   help=f"Zenoh router of the ROS 2 network (default {rz.DEFAULT_ROUTER}, rmw_zenoh's)")
+    r.add_argument("--ros-zenoh-config", metavar="FILE", help="Zenoh session file for the ROS side")
+    r.add_argument("--domain-id", type=int, help="ROS_DOMAIN_ID (default $ROS_DOMAIN_ID or 0)")
+    r.add_argument("--distro", help="humble, jazzy (default), ...: message definitions and type hashes")
+    r.add_argument("--node-name", help="the node's name (default aisdf): topics /<name>/occupancy_grid, ...")
+    r.add_argument("--ros-namespace", help="the node's namespace (default /)")
+    r.add_argument("--frame-id", help="the fixed frame of the keyframes' poses (default map)")
+    r.add_argument("--resolution", type=float, help="grid cell, metres (default 0.05)")
+    r.add_argument("--band", type=float, nargs=2, metavar=("LOW", "HIGH"),
+                   help="heights above the floor sliced, metres (default 0.1 1.0)")
+    r.add_argument("--robot-radius", type=float, help="occupied where the clearance is below it (default 0.2)")
+    r.add_argument("--rate", type=float, help="grid refreshes per second (default 1)")
+    r.add_argument("--map-dir", help="where /aisdf/save_map writes and /aisdf/load_map reads (default maps)")
+    a = p.parse_args(argv)
+    cfg = config_from_args(Ros2OutputsConfig, a, {
+        "ros_connect": a.ros_connect, "ros_zenoh_config": a.ros_zenoh_config, "domain_id": a.domain_id,
+        "distro": a.distro, "node_name": a.node_name, "ros_namespace": a.ros_namespace, "frame_id": a.frame_id,
+        "resolution": a.resolution, "band": a.band, "robot_radius": a.robot_radius, "rate_hz": a.rate,
+        "map_dir": a.map_dir})
+    stop = service_setup(cfg, "ros2")
+    main(cfg, stop)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(cli())
