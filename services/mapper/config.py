@@ -8,6 +8,7 @@ from typing import Any, ClassVar, Literal
 from pydantic import Field, model_validator
 
 from aisdf.config import ServiceConfig
+from aisdf.mapper.coverage import KeyframePolicy
 from aisdf.submaps.config import SubmapConfig
 
 
@@ -30,6 +31,9 @@ class MapperConfig(ServiceConfig):
         "submaps", description="submaps: one network per submap (protocol 1.3: map/submaps/<id> and map/index, only "
         "what changed each period); single: one network for the whole map (map/weights)")
     submap: SubmapConfig = Field(default_factory=SubmapConfig, description="submap cells and step sharing")
+    keyframes: KeyframePolicy = Field(default_factory=KeyframePolicy, description="keyframes that add nothing new "
+                                      "are acknowledged but not stored; the submap mapper stores at most "
+                                      "keyframes.max_keyframes_total")
     measured: bool = Field(True, description="pool the keyframes' depth pixels into 10 cm voxels and publish the "
                            "points with the map, for the query service's fused answers (protocol 1.4 with submaps, "
                            "1.5 with one network); false = no points (submap.measured: false also turns them off "

@@ -59,8 +59,8 @@ class MapperNode:
         self.session = session
         self.ns = cfg.namespace
         self.pipeline = pipeline or make_mapper(
-            cfg.mapper, cfg.preset, cfg.training, atlanta=cfg.atlanta, surfel_mask=cfg.surfel_mask,
-            surfel_loss=cfg.surfel_loss, surfel_bounds=cfg.surfel_bounds, measured=cfg.measured, submaps=cfg.submap)
+            cfg.mapper, cfg.preset, cfg.training, atlanta=cfg.atlanta, surfel_mask=cfg.surfel_mask, surfel_loss=cfg.surfel_loss,
+            surfel_bounds=cfg.surfel_bounds, measured=cfg.measured, submaps=cfg.submap, keyframes=cfg.keyframes)
         self.pending: collections.deque = collections.deque()
         self.lock = threading.Lock()
         self.train_lock = threading.Lock()  # held through each training step; a map is saved or swapped between

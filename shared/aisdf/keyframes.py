@@ -82,12 +82,16 @@ class KeyframeSelector:
 
 
 def keyframe_message(frame: dict, sensor: str = "depth", depth_encoding: str = "f4") -> protocol.Keyframe:
-    """The wire keyframe of a source's frame (dict of frame_id, stamp, depth, K, T_WC): depth
-    as ``f4`` metres or ``u2`` millimetres (what the frontend sends)."""
+    """The wire keyframe of a source's frame (dict of frame_id, stamp, depth, K, T_WC, and
+    optionally mask: (H, W), nonzero = a pixel to ignore, sent as 1.10's ``mask``): depth as
+    ``f4`` metres or ``u2`` millimetres (what the frontend sends)."""
     depth = np.asarray(frame["depth"], dtype=np.float32)
     scale = None
     if depth_encoding == "u2":
         depth = np.clip(np.round(np.nan_to_num(depth) * 1000.0), 0, 65535).astype(np.uint16)
         scale = 1000.0
+    mask = frame.get("mask")
+    if mask is not None:
+        mask = (np.asarray(mask) != 0).astype(np.uint8)
     return protocol.Keyframe(int(frame["frame_id"]), float(frame["stamp"]), depth, np.asarray(frame["K"], np.float64),
-                             np.asarray(frame["T_WC"], np.float64), scale, sensor)
+                             np.asarray(frame["T_WC"], np.float64), scale, sensor, mask)

@@ -42,7 +42,9 @@ from .geometry import decode_depth
 
 @dataclass
 class Keyframe:
-    """A posed depth image. ``depth`` is as sent (``<u2`` raw or ``<f4`` metres)."""
+    """A posed depth image. ``depth`` is as sent (``<u2`` raw or ``<f4`` metres). ``mask``
+    (1.10, optional): (H, W) uint8, 1 = a pixel to ignore (a dynamic object), treated as
+    no measurement; None = nothing masked."""
 
     frame_id: int
     stamp: float
@@ -51,15 +53,18 @@ class Keyframe:
     T_WC: np.ndarray
     depth_scale: float | None = None
     sensor: str = "depth"
+    mask: np.ndarray | None = None
 
     def depth_m(self) -> np.ndarray:
-        """Depth in metres as float32 (H, W); 0 where there is no measurement."""
+        """Depth in metres as float32 (H, W); 0 where there is no measurement or ``mask`` is 1."""
         if self.depth.dtype == np.uint16:
             d = decode_depth(self.depth, self.depth_scale)
         else:
             d = self.depth.astype(np.float32, copy=True)
             d[~np.isfinite(d)] = 0.0
         d[d < 0] = 0.0
+        if self.mask is not None:
+            d[self.mask.astype(bool)] = 0.0
         return d
 
     def to_msg(self) -> dict:
@@ -74,11 +79,14 @@ class Keyframe:
         }
         if self.depth.dtype == np.uint16:
             msg["depth_scale"] = float(self.depth_scale)
+        if self.mask is not None:
+            msg["mask"] = encode_array(self.mask, "|u1")
         return msg
 
     @classmethod
     def from_msg(cls, msg: Mapping) -> "Keyframe":
-        """Decode and validate: dtype, depth shape against K, finite values, rigid pose."""
+        """Decode and validate: dtype, depth shape against K, finite values, rigid pose, the
+        mask's dtype, shape (the depth's) and values (0 or 1)."""
         frame_id = _get(msg, "frame_id", int, what="an integer")
         stamp = _number(msg, "stamp")
         depth = decode_array(msg.get("depth"), "depth", ("<u2", "<f4"), (None, None))
@@ -107,7 +115,15 @@ class Keyframe:
         if not is_rigid(T_WC):
             raise _bad("T_WC is not a rigid 4x4 camera-to-world transform")
         sensor = _get(msg, "sensor", str, "depth", "a string")
-        return cls(frame_id, stamp, depth.copy(), K.copy(), T_WC.copy(), depth_scale, sensor)
+        mask = None
+        if msg.get("mask") is not None:  # 1.10: pixels to ignore, the depth's shape
+            mask = decode_array(msg["mask"], "mask", ("|u1",))
+            if mask.shape != (H, W):
+                raise _bad(f"'mask' shape {list(mask.shape)} does not match depth's {[H, W]}")
+            if mask.size and mask.max() > 1:
+                raise _bad("'mask' values must be 0 (keep) or 1 (ignore)")
+            mask = mask.copy()
+        return cls(frame_id, stamp, depth.copy(), K.copy(), T_WC.copy(), depth_scale, sensor, mask)
 
 
 @dataclass

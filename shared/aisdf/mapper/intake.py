@@ -1,7 +1,8 @@
 """The keyframe intake both mappers share: a received keyframe checked and decoded, the
 Atlanta frame and surfels updated (``structure``), and the map's bookkeeping that does not
 depend on how the map is learnt: the box of what was seen, the observed space, the pool of
-measured points, and the per-module timings. A mapper holds one :class:`KeyframeIntake`
+measured points, the stored keyframes' coverage (``coverage``: keyframes that add nothing
+new are not stored) and the per-module timings. A mapper holds one :class:`KeyframeIntake`
 and stores the frame for training between ``accept`` and ``record``."""
 
 from __future__ import annotations
@@ -16,6 +17,7 @@ from .. import geometry, protocol
 from ..mapping.frames import Frame
 from ..observed import ObservedSpace
 from ..structure.measured import MeasuredSurface
+from .coverage import KeyframeCoverage, KeyframePolicy
 
 MIN_VALID_PIXELS = 64
 TIMING_HISTORY = 200  # recent values kept per timing
@@ -23,8 +25,14 @@ TIMING_HISTORY = 200  # recent values kept per timing
 
 def frame_from_keyframe(kf: protocol.Keyframe) -> Frame:
     """The frame of a received keyframe: depth in metres, and for ``<u2`` depth the raw
-    values too (a stored keyframe holds those: half the bytes, the same metres)."""
+    values too (a stored keyframe holds those: half the bytes, the same metres). Masked
+    pixels (1.10) are no measurement in both: 0, as invalid depth, for every use of the frame
+    (training, measured points, surfels, observed space). ValueError for a mask of another shape."""
+    if kf.mask is not None and np.shape(kf.mask) != kf.depth.shape:
+        raise ValueError(f"mask shape {np.shape(kf.mask)} does not match depth's {kf.depth.shape}")
     raw = kf.depth if kf.depth.dtype == np.uint16 and kf.depth_scale is not None else None
+    if raw is not None and kf.mask is not None:
+        raw = np.where(np.asarray(kf.mask).astype(bool), np.uint16(0), raw)
     return Frame(kf.frame_id, kf.stamp, kf.depth_m(), kf.K, kf.T_WC, sensor=kf.sensor, depth_raw=raw,
                  depth_scale=None if raw is None else float(kf.depth_scale))
 
@@ -60,7 +68,7 @@ class KeyframeIntake:
     """``accept`` (check, decode, structure) then ``record`` (bounds, observed, measured)."""
 
     def __init__(self, max_depth: float, seed: int, atlanta: bool = True, atlanta_state: dict | None = None,
-                 measured: bool = True):
+                 measured: bool = True, policy: KeyframePolicy | None = None):
         self.max_depth = max_depth
         self.structure = None
         if atlanta:
@@ -72,19 +80,28 @@ class KeyframeIntake:
         self.bounds: np.ndarray | None = None
         self.observed = ObservedSpace()
         self.measured = MeasuredSurface(max_depth=max_depth) if measured else None
+        self.coverage = KeyframeCoverage(policy, max_depth)
+        self.redundant = 0  # keyframes acknowledged but not stored: they added nothing new
         self.timings: dict[str, list[float]] = defaultdict(list)
         self._pending: dict[str, float] = {}  # keyframe timings not yet reported with a step
 
-    def accept(self, kf: protocol.Keyframe | Frame, known: Callable[[tuple[str, int]], bool]) -> Frame:
-        """The keyframe's frame, after the structure has processed it. Raises ValueError (and
-        changes nothing) for one that cannot be used: too few valid depth pixels, or a
-        (sensor, frame_id) that ``known`` says is in the map already."""
+    def accept(self, kf: protocol.Keyframe | Frame, known: Callable[[tuple[str, int]], bool]) -> Frame | None:
+        """The keyframe's frame, after the structure has processed it; None for a keyframe
+        that adds nothing new (``coverage``: counted as ``redundant``, nothing else changes).
+        Raises ValueError (and changes nothing) for one that cannot be used: a mask of another
+        shape, too few valid depth pixels, or a (sensor, frame_id) ``known`` says is in the map."""
         frame = frame_from_keyframe(kf) if isinstance(kf, protocol.Keyframe) else kf
         valid = geometry.valid_depth(frame.depth, self.max_depth)
         if int(valid.sum()) < MIN_VALID_PIXELS:
             raise ValueError(f"only {int(valid.sum())} valid depth pixels (need {MIN_VALID_PIXELS})")
         if known(frame.key):
             raise ValueError(f"keyframe {frame.sensor}/{frame.frame_id} is already in the map")
+        t = time.perf_counter()
+        redundant = self.coverage.is_redundant(frame)
+        self.timings["coverage"].append(1e3 * (time.perf_counter() - t))
+        if redundant:
+            self.redundant += 1
+            return None
         if self.structure is not None:
             for k, v in self.structure.process(frame).items():
                 self._pending[k] = self._pending.get(k, 0.0) + v
@@ -92,8 +109,10 @@ class KeyframeIntake:
         return frame
 
     def record(self, frame: Frame) -> None:
-        """The stored keyframe's part in the box, the observed space and the measured points."""
+        """The stored keyframe's part in the box, the observed space, the measured points and
+        the coverage."""
         self.bounds = grow_bounds(self.bounds, frame, self.max_depth)
+        self.coverage.add(frame.key, frame)
         t = time.perf_counter()
         self.observed.add(frame.depth, frame.K, frame.T_WC, self.max_depth)
         self.timings["observed"].append(1e3 * (time.perf_counter() - t))
@@ -117,6 +136,7 @@ class KeyframeIntake:
     def stats(self) -> dict:
         """Mean timings (ms) over recent values, and the structure's counters."""
         out = {k: round(float(np.mean(v)), 3) for k, v in self.timings.items() if v}
+        out["redundant"] = self.redundant
         if self.structure is not None:
             out.update(self.structure.stats())
         return out

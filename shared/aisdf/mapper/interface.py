@@ -62,9 +62,11 @@ class Mapper(Protocol):
     def describe(self) -> str:
         """One line for logs: the mapper's kind and main settings."""
 
-    def add_keyframe(self, kf: protocol.Keyframe | Frame) -> None:
-        """Add a keyframe. Raises ValueError and changes nothing for one that cannot be used:
-        a duplicate (sensor, frame_id), too few valid depth pixels."""
+    def add_keyframe(self, kf: protocol.Keyframe | Frame) -> bool:
+        """Add a keyframe: True when stored; False when it adds nothing new (``coverage``: not
+        stored, counted in ``stats()["redundant"]``; it is in the map's knowledge all the same,
+        and the service acknowledges it). Raises ValueError and changes nothing for one that
+        cannot be used: a duplicate (sensor, frame_id), too few valid depth pixels, a bad mask."""
 
     def keyframe_keys(self) -> list[tuple[str, int]]:
         """(sensor, frame_id) of every keyframe in the map, in arrival order."""
@@ -73,7 +75,8 @@ class Mapper(Protocol):
         """One training step; its loss and timings."""
 
     def stats(self) -> dict:
-        """Mean per-module timings (ms) over recent steps and keyframes, and counters."""
+        """Mean per-module timings (ms) over recent steps and keyframes, and counters
+        (``redundant``: keyframes not stored; submaps: ``evicted``)."""
 
     def sdf(self, points: np.ndarray) -> np.ndarray:
         """(N,) the map's implicit SDF (the networks alone) at (N, 3) world points."""

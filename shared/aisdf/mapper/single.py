@@ -21,6 +21,7 @@ from ..mapping.presets import structure_overrides, training_config
 from ..mapping.trainer import Trainer
 from ..structure.measured import MeasuredSurface
 from ..structure.surfel_types import Surfels
+from .coverage import KeyframePolicy
 from .intake import KeyframeIntake
 
 
@@ -28,12 +29,15 @@ class MappingPipeline:
     kind = "single"
 
     def __init__(self, trainer: Trainer, atlanta: bool = True, atlanta_state: dict | None = None,
-                 measured: bool = True):
+                 measured: bool = True, keyframes: KeyframePolicy | None = None):
         self.trainer = trainer
         self.atlanta_on = atlanta
         # Every keyframe's depth pixels pooled into 10 cm voxels, sent with each snapshot
-        # (protocol 1.5: the query service's fused answers use them).
-        self.intake = KeyframeIntake(trainer.cfg.max_depth, trainer.cfg.seed, atlanta, atlanta_state, measured)
+        # (protocol 1.5: the query service's fused answers use them). Keyframes that add nothing
+        # new are not stored (coverage.py); the store's own bound (training.max_keyframes) holds.
+        self.kf_policy = keyframes or KeyframePolicy()
+        self.intake = KeyframeIntake(trainer.cfg.max_depth, trainer.cfg.seed, atlanta, atlanta_state, measured,
+                                     self.kf_policy)
         if self.structure is not None and trainer.cfg.surfel_bounds:
             from ..structure.prior import SurfelPrior
 
@@ -54,12 +58,15 @@ class MappingPipeline:
     @classmethod
     def from_settings(cls, preset: str = "auto", training: dict[str, Any] | None = None, atlanta: bool = True,
                       surfel_mask: bool = True, surfel_loss: bool = True,
-                      surfel_bounds: bool = True, measured: bool = True) -> "MappingPipeline":
+                      surfel_bounds: bool = True, measured: bool = True,
+                      keyframes: KeyframePolicy | dict | None = None) -> "MappingPipeline":
         """Preset + overrides; the Table II switches (and ``surfel_bounds``, beyond the paper)
         only matter with ``atlanta`` on. ``measured``: pool the depth pixels and publish them
         (protocol 1.5; false: 1.4's snapshots, without points)."""
         overrides = structure_overrides(training, atlanta, surfel_mask, surfel_loss, surfel_bounds)
-        return cls(Trainer(training_config(preset, **overrides)), atlanta=atlanta, measured=measured)
+        kfp = keyframes if isinstance(keyframes, KeyframePolicy) else KeyframePolicy.model_validate(keyframes or {})
+        return cls(Trainer(training_config(preset, **overrides)), atlanta=atlanta, measured=measured,
+                   keyframes=kfp)
 
     def describe(self) -> str:
         c = self.trainer.cfg
@@ -85,12 +92,18 @@ class MappingPipeline:
     def ready(self) -> bool:
         return self.trainer.n_keyframes > 0
 
-    def add_keyframe(self, kf: protocol.Keyframe | Frame) -> None:
-        """Add a keyframe. Raises ValueError (and changes nothing) for one that cannot be
-        used: a duplicate (sensor, frame_id), too few valid depth pixels."""
+    def add_keyframe(self, kf: protocol.Keyframe | Frame) -> bool:
+        """Add a keyframe: True when stored, False when it adds nothing new (not stored,
+        counted as ``redundant``). Raises ValueError (and changes nothing) for one that cannot
+        be used: a duplicate (sensor, frame_id), too few valid depth pixels, a bad mask."""
         frame = self.intake.accept(kf, lambda key: key in {f.key for f in self.trainer.keyframes})
+        if frame is None:
+            return False
         self.trainer.add_keyframe(frame)
         self.intake.record(frame)
+        for key in set(self.intake.coverage.views) - set(self.keyframe_keys()):  # dropped by the store
+            self.intake.coverage.remove(key)
+        return True
 
     def keyframe_keys(self) -> list[tuple[str, int]]:
         return [f.key for f in self.trainer.keyframes]
@@ -150,16 +163,19 @@ class MappingPipeline:
 
     def memory(self) -> dict[str, int]:
         """Bytes held, by part: keyframes (depth, surfel masks, surfels), model (weights and
-        AdamW moments), observed space, measured points (the pool's voxels)."""
+        AdamW moments), observed space (and the stored keyframes' voxels), measured points
+        (the pool's voxels)."""
         kf = sum(k.nbytes() for k in self.trainer.store.keyframes)
         n_par = sum(p.numel() for p in self.trainer.net.parameters())
-        return {"keyframes": int(kf), "model": int(3 * 4 * n_par), "observed": int(self.observed.nbytes()),
+        return {"keyframes": int(kf), "model": int(3 * 4 * n_par),
+                "observed": int(self.observed.nbytes() + self.intake.coverage.nbytes()),
                 "measured": 0 if self.measured is None else self.measured.nbytes()}
 
     # ------------------------------------------------------------------ checkpoints
 
     def checkpoint(self) -> dict:
         return {"trainer": self.trainer.checkpoint(), "atlanta": self.atlanta_on,
+                "keyframes": self.kf_policy.model_dump(mode="json"), "redundant": self.intake.redundant,
                 "structure": None if self.structure is None else self.structure.state_dict(),
                 "bounds": None if self.intake.bounds is None else self.intake.bounds.tolist(),
                 "observed": self.observed.state_dict(),
@@ -171,7 +187,11 @@ class MappingPipeline:
         # (those the keyframe store dropped are gone); None: the mapper pooled none.
         has = "measured" in d
         p = cls(Trainer.from_checkpoint(d["trainer"]), atlanta=d["atlanta"], atlanta_state=d.get("structure"),
-                measured=not has or d["measured"] is not None)
+                measured=not has or d["measured"] is not None,
+                keyframes=KeyframePolicy.model_validate(d.get("keyframes") or {}))
+        p.intake.redundant = int(d.get("redundant", 0))
+        for f in p.trainer.keyframes:
+            p.intake.coverage.add(f.key, f)
         if has and d["measured"] is not None:
             p.intake.measured = MeasuredSurface.from_state_dict(d["measured"])
         if d.get("bounds") is not None:

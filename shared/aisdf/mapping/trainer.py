@@ -75,6 +75,18 @@ class Trainer:
         """Store a keyframe (depth cleaned, normals computed); returns frame_ids dropped for memory."""
         return self.store.add(frame)
 
+    def remove_keyframe(self, key: tuple[str, int]) -> bool:
+        """Remove the keyframe (sensor, frame_id) from the store (the map's bound on
+        keyframes); the rate does not take it for a new keyframe. True when it was there."""
+        n = len(self.store)
+        synced = self._store_size == (n, self.store.dropped)
+        self.store.keyframes = [k for k in self.store.keyframes if k.frame.key != key]
+        if len(self.store) == n:
+            return False
+        if synced:
+            self._store_size = (len(self.store), self.store.dropped)
+        return True
+
     # ------------------------------------------------------------------ training
     def learning_rate(self) -> float:
         """The rate of the next step: ``lr``, or with ``lr_settle`` a rate that halves its

@@ -2,7 +2,8 @@
 once, each submap's weights, AdamW state, keyframe keys and loss estimates, publication
 state, counters and generators) of a :class:`~aisdf.submaps.pipeline.SubmapPipeline`
 (``checkpoint``), and the pipeline again (``restore``); the format is plain types and numpy
-arrays (the mapper service writes it with torch.save)."""
+arrays (the mapper service writes it with torch.save). Evicted keyframes are gone from it; the
+measured points they gave are kept (the pool is saved, not rebuilt from the keyframes)."""
 
 from __future__ import annotations
 
@@ -11,13 +12,18 @@ import numpy as np
 from .. import network
 from ..mapping.config import TrainingConfig
 from ..mapping.frames import Frame, StoredFrame
+from ..mapper.coverage import KeyframePolicy
 from ..mapping.trainer import Trainer
+from ..structure.measured import MeasuredSurface
 from .config import SubmapConfig
 from .grid import SubmapGrid
 from .submap import Submap
 
 CHECKPOINT_FORMAT = "aisdf-submaps-checkpoint"
-CHECKPOINT_VERSION = 2  # 2: keyframes sent as <u2 are written raw (depth_raw, depth_scale; depth None); 1 still loads
+# 2: keyframes sent as <u2 are written raw (depth_raw, depth_scale; depth None); 1 still loads.
+# Optional keys since 1.10 (absent: defaults, the pool rebuilt from the keyframes): "keyframes"
+# (the policy), "redundant", "evicted", "measured" (the pool: evicted keyframes' points stay).
+CHECKPOINT_VERSION = 2
 
 
 def checkpoint(pipe) -> dict:
@@ -46,6 +52,8 @@ def checkpoint(pipe) -> dict:
         "rng": pipe.rng.bit_generator.state,
         "bounds": None if pipe.intake.bounds is None else pipe.intake.bounds.tolist(),
         "observed": pipe.observed.state_dict(),
+        "keyframes": pipe.kf_policy.model_dump(mode="json"), "redundant": pipe.intake.redundant,
+        "evicted": pipe.evicted, "measured": None if pipe.measured is None else pipe.measured.state_dict(),
     }
 
 
@@ -56,12 +64,19 @@ def restore(cls, d: dict):
     if int(d.get("version", 0)) > CHECKPOINT_VERSION:
         raise ValueError(f"checkpoint version {d['version']} is newer than this build's {CHECKPOINT_VERSION}")
     p = cls(TrainingConfig.model_validate(d["config"]), atlanta=d["atlanta"],
-            submaps=SubmapConfig.model_validate(d["submap_config"]), atlanta_state=d.get("structure"))
+            submaps=SubmapConfig.model_validate(d["submap_config"]), atlanta_state=d.get("structure"),
+            keyframes=KeyframePolicy.model_validate(d.get("keyframes") or {}))
+    saved = d.get("measured")  # since 1.10; before, the pool is rebuilt from the keyframes
+    if p.measured is not None and saved is not None:
+        p.intake.measured = MeasuredSurface.from_state_dict(saved)
     for fd in d["frames"]:
         f = Frame.from_dict(fd)
         p.frames[f.key] = StoredFrame.make(f, p.cfg.max_depth)
-        if p.measured is not None:  # rebuilt from the keyframes (the same pixels, the same voxels)
+        p.intake.coverage.add(f.key, f)
+        if p.measured is not None and saved is None:  # the same pixels, the same voxels
             p.measured.add(f.depth, f.K, f.T_WC)
+    p.intake.redundant = int(d.get("redundant", 0))
+    p.evicted = int(d.get("evicted", 0))
     if d.get("grid") is not None:
         p.grid = SubmapGrid.from_msg(d["grid"])
     p._waiting = [p.frames[(s, int(i))] for s, i in d.get("waiting", [])]

@@ -31,13 +31,14 @@ import numpy as np
 import torch
 
 from .. import geometry, network, protocol
+from ..mapper.coverage import KeyframePolicy
 from ..mapper.intake import KeyframeIntake
 from ..mapping.frames import Frame, StoredFrame
 from ..mapping.presets import structure_overrides, submap_training_config
 from ..mapping.trainer import Trainer
 from ..structure.measured import MeasuredSurface
 from ..structure.surfel_types import Surfels
-from . import persist
+from . import evict, persist
 from .config import SubmapConfig
 from .field import blend
 from .grid import SubmapGrid, cell_id, parse_cell_id
@@ -56,11 +57,14 @@ class SubmapPipeline:
     kind = "submaps"
 
     def __init__(self, cfg, atlanta: bool = True, submaps: SubmapConfig | None = None,
-                 atlanta_state: dict | None = None):
+                 atlanta_state: dict | None = None, keyframes: KeyframePolicy | None = None):
         self.cfg = cfg
         self.sub_cfg = submaps or SubmapConfig()
+        self.kf_policy = keyframes or KeyframePolicy()
         self.atlanta_on = atlanta
-        self.intake = KeyframeIntake(cfg.max_depth, cfg.seed, atlanta, atlanta_state, self.sub_cfg.measured)
+        self.intake = KeyframeIntake(cfg.max_depth, cfg.seed, atlanta, atlanta_state, self.sub_cfg.measured,
+                                     self.kf_policy)
+        self.evicted = 0  # keyframes removed for max_keyframes_total (evict.py)
         if cfg.torch_threads:
             torch.set_num_threads(cfg.torch_threads)
         self.grid: SubmapGrid | None = None
@@ -77,10 +81,12 @@ class SubmapPipeline:
     @classmethod
     def from_settings(cls, preset: str = "auto", training: dict[str, Any] | None = None, atlanta: bool = True,
                       surfel_mask: bool = True, surfel_loss: bool = True, surfel_bounds: bool = True,
-                      submaps: SubmapConfig | dict | None = None) -> "SubmapPipeline":
+                      submaps: SubmapConfig | dict | None = None,
+                      keyframes: KeyframePolicy | dict | None = None) -> "SubmapPipeline":
         overrides = structure_overrides(training, atlanta, surfel_mask, surfel_loss, surfel_bounds)
         sub = submaps if isinstance(submaps, SubmapConfig) else SubmapConfig.model_validate(submaps or {})
-        return cls(submap_training_config(preset, **overrides), atlanta=atlanta, submaps=sub)
+        kfp = keyframes if isinstance(keyframes, KeyframePolicy) else KeyframePolicy.model_validate(keyframes or {})
+        return cls(submap_training_config(preset, **overrides), atlanta=atlanta, submaps=sub, keyframes=kfp)
 
     def describe(self) -> str:
         c, s = self.cfg, self.sub_cfg
@@ -121,10 +127,15 @@ class SubmapPipeline:
         return list(self.frames)
 
     # ------------------------------------------------------------------ keyframes
-    def add_keyframe(self, kf: protocol.Keyframe | Frame) -> None:
-        """Add a keyframe. Raises ValueError (and changes nothing) for one that cannot be
-        used: a duplicate (sensor, frame_id), too few valid depth pixels."""
+    def add_keyframe(self, kf: protocol.Keyframe | Frame) -> bool:
+        """Add a keyframe: True when stored, False when it adds nothing new (``redundant``,
+        not stored: ``aisdf.mapper.coverage``). Beyond ``max_keyframes_total`` the keyframe
+        best covered by the others is evicted (``evict.py``). Raises ValueError (and changes
+        nothing) for one that cannot be used: a duplicate (sensor, frame_id), too few valid
+        depth pixels, a mask of another shape."""
         frame = self.intake.accept(kf, self.frames.__contains__)
+        if frame is None:
+            return False
         t0 = time.perf_counter()
         prepared = StoredFrame.make(frame, self.cfg.max_depth)
         self.frames[frame.key] = prepared
@@ -136,6 +147,8 @@ class SubmapPipeline:
             self._assign(prepared)
         self._since_keyframe = 0
         self.intake.timings["assign"].append(1e3 * (time.perf_counter() - t0))
+        evict.bound(self)
+        return True
 
     def _maybe_make_grid(self, frame: Frame) -> None:
         s = self.sub_cfg
@@ -289,7 +302,7 @@ class SubmapPipeline:
         return info
 
     def stats(self) -> dict:
-        return {**self.intake.stats(), "submaps": len(self.submaps),
+        return {**self.intake.stats(), "submaps": len(self.submaps), "evicted": self.evicted,
                 "dropped_keyframes": sum(sm.trainer.dropped_keyframes for sm in self.submaps.values())}
 
     # ------------------------------------------------------------------ answers
@@ -316,12 +329,13 @@ class SubmapPipeline:
 
     def memory(self) -> dict[str, int]:
         """Bytes held, by part: keyframes (with each submap's pixel masks), model (weights and
-        AdamW moments), observed space, measured points."""
+        AdamW moments), observed space (and the stored keyframes' voxels, ``coverage``), measured points."""
         kf = sum(k.nbytes() for k in self.frames.values())
         masks = sum(v.pixel_bits.nbytes for sm in self.submaps.values() for v in sm.trainer.store.keyframes
                     if v.pixel_bits is not None)
         n_par = sum(p.numel() for sm in self.submaps.values() for p in sm.trainer.net.parameters())
-        return {"keyframes": int(kf + masks), "model": int(3 * 4 * n_par), "observed": int(self.observed.nbytes()),
+        return {"keyframes": int(kf + masks), "model": int(3 * 4 * n_par),
+                "observed": int(self.observed.nbytes() + self.intake.coverage.nbytes()),
                 "measured": 0 if self.measured is None else self.measured.nbytes()}
 
 
