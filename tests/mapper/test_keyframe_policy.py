@@ -108,6 +108,7 @@ def test_masked_pixels_are_no_measurement(seq, u2):
     stored = p.frames[(kf.sensor, kf.frame_id)]
     assert not stored.depth[box].any() and stored.depth[20, 5] > 0  # masked: 0 = invalid; the rest kept
     assert not stored.valid()[box].any()  # rays are drawn from valid pixels only: none trains there
+    assert (stored.scale == 1000.0) == u2  # <u2 depth is still held raw (masked pixels 0 in it)
     assert not np.isin(hidden, p.measured.keys).any()  # none of the masked surface is measured
     unmasked = make_mapper("submaps", "cpu", SMALL)
     unmasked.add_keyframe(keyframe_message(seq.frame(10)))
