@@ -29,7 +29,7 @@ def _bench_query(args) -> None:
 
     res = run(out=args.out, sizes=args.sizes, repeats=args.repeats, threads=args.threads, bake_threads=args.bake_threads,
               train_steps=args.train_steps, planners=args.planners, planner_s=args.planner_s, lag_s=args.lag_s,
-              n_eval=args.eval_points, mapper=args.mapper, beside_mapper=args.beside_mapper)
+              n_eval=args.eval_points, mapper=args.mapper, beside_mapper=args.beside_mapper, peer=args.peer)
     print(report(res))
 
 
@@ -52,6 +52,8 @@ TOOLS = [
     ("bake", "aisdf.bench.bake", "the query service's incremental bake against a full bake as a submap map grows"),
     ("rosbag", "aisdf.bench.rosbag", "7-Scenes frames mapped from .mcap, .db3 and ROS 1 recordings against the folder"),
     ("ros2-live", "aisdf.bench.ros2_live", "the live ROS 2 source against the protocol-v1 frontend, real processes"),
+    ("parked", "aisdf.bench.parked", "a parked robot's keyframes and memory, and a walk's keyframes, in-process"),
+    ("ros2-out", "aisdf.bench.ros2_out", "what aisdf ros2 publishes (occupancy grid) while a building is walked"),
     ("device", "aisdf.bench.device", "the query engine and both mappers on a GPU against the CPU"),
 ]
 
@@ -126,6 +128,8 @@ def main(argv: list[str] | None = None) -> None:
                    "900 with one network: about what the demo's mapper makes in 180 s)")
     q.add_argument("--planners", type=int, default=8)
     q.add_argument("--planner-s", type=float, default=60.0, help="seconds of the concurrent-planners run")
+    q.add_argument("--no-peer", dest="peer", action="store_false",
+                   help="skip the voxel map beside it (5 cm and 2 cm: accuracy, lookup, update, memory)")
     q.add_argument("--no-mapper", dest="beside_mapper", action="store_false",
                    help="the concurrent planners without a mapper training beside them (the map above, published "
                    "once); by default the mapper trains the office walk on this machine meanwhile (aisdf bench load)")

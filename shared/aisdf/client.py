@@ -68,6 +68,7 @@ class SdfClient:
         observed: bool = False,
         exact: bool = False,
         unknown: bool = False,
+        fresh: bool = True,
     ) -> query_messages.SdfReply:
         """Signed distances (and optionally gradients and CHOMP costs) of (N, 3) points.
 
@@ -77,7 +78,9 @@ class SdfClient:
         network's answer instead of the baked field's. ``unknown`` (protocol 1.6): also return
         per point the distance to the nearest space no keyframe has seen (``reply.unknown``;
         with ``radii``, that of the sphere's surface): ``min(sdf, unknown)`` is the distance
-        of a planner that treats unknown space as occupied.
+        of a planner that treats unknown space as occupied. ``fresh=False`` (protocol 1.9):
+        the baked field answers even when it trails the newest map (cheaper for the service;
+        ``map_version`` and ``map_age_s`` say which map).
 
         With ``max_batch`` set, larger inputs are split into several requests and the
         replies concatenated (map_version is the smallest one seen)."""
@@ -94,7 +97,8 @@ class SdfClient:
         parts = []
         for i in range(0, max(len(pts), 1), step):
             req = query_messages.SdfRequest(pts[i:i + step], gradient, collision_epsilon, source,
-                                      None if radii is None else radii[i:i + step], observed, exact, unknown)
+                                            None if radii is None else radii[i:i + step], observed, exact, unknown,
+                                            fresh=fresh)
             parts.append(query_messages.SdfReply.from_msg(transport.query(self._session, self._key(keys.QUERY_SDF),
                                                                     req.to_msg(), self.timeout)))
         if len(parts) == 1:

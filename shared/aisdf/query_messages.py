@@ -109,6 +109,7 @@ class SdfRequest:
     exact: bool = False  # evaluate the network now instead of the baked field
     unknown: bool = False  # protocol 1.6: also answer each point's distance to unobserved space
     box: Box | None = None  # protocol 1.9: the points are this lattice (sent as the box, not the points)
+    fresh: bool = True  # protocol 1.9: False = the bake answers even when it trails (no answer from the newest map)
 
     def to_msg(self) -> dict:
         msg = {"v": VERSION, "gradient": bool(self.gradient), "source": self.source}
@@ -132,6 +133,8 @@ class SdfRequest:
             msg["exact"] = True
         if self.unknown:
             msg["unknown"] = True
+        if not self.fresh:
+            msg["fresh"] = False
         return msg
 
     @classmethod
@@ -168,7 +171,8 @@ class SdfRequest:
         observed = _get(msg, "observed", bool, False, "a boolean")
         exact = _get(msg, "exact", bool, False, "a boolean")
         unknown = _get(msg, "unknown", bool, False, "a boolean")
-        return cls(points, gradient, eps, source, radii, observed, exact, unknown, box)
+        fresh = _get(msg, "fresh", bool, True, "a boolean")
+        return cls(points, gradient, eps, source, radii, observed, exact, unknown, box, fresh)
 
 
 @dataclass

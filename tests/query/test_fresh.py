@@ -271,6 +271,16 @@ def test_planners_first_while_requests_wait_a_trailing_bake_answers(submap_map):
     np.testing.assert_array_equal(busy.sdf, alone.sdf)
     assert busy.map_version == 2 and e.held == 1
 
+    # 1.9: an asker that takes the bake as it is (fresh: false; aisdf ros2's grid) gets it even
+    # alone, through the wire's encoding too
+    e.fresh_busy, e.waiting = False, (lambda: 0)
+    req = query_messages.SdfRequest(pts.astype(np.float32), gradient=True, fresh=False)
+    again = query_messages.SdfRequest.from_msg(protocol.unpack(protocol.pack(req.to_msg())))
+    assert again.fresh is False and "fresh" not in query_messages.SdfRequest(pts).to_msg()
+    stale = e.answer_sdf(again)
+    np.testing.assert_array_equal(stale.sdf, before.sdf)
+    assert stale.map_version == 1 and e.held == 1
+
 
 def test_space_mapped_since_the_bake_is_baked_first(submap_map, monkeypatch):
     """A re-bake of a map that observed more space first bakes the new blocks alone (every other

@@ -110,7 +110,7 @@ def bake_probe(map_path: Path, threads: int = 2) -> dict:
 def run(out: str | Path = "runs/bench-query", sizes=(1_000, 10_000, 100_000), repeats: int = 20,
         threads: int | None = None, bake_threads: int = 2, train_steps: int | None = None, planners: int = 8,
         planner_s: float = 60.0, lag_s: float = 30.0, n_eval: int = 200_000, quiet: bool = False,
-        log_dir: str | None = None, mapper: str = "submaps", beside_mapper: bool = True) -> dict:
+        log_dir: str | None = None, mapper: str = "submaps", beside_mapper: bool = True, peer: bool = True) -> dict:
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     torch.set_num_threads(threads or 1)  # as the service: parallelism from its workers and bake threads
@@ -156,6 +156,10 @@ def run(out: str | Path = "runs/bench-query", sizes=(1_000, 10_000, 100_000), re
     }
     a = res["accuracy"]
     a["grad_cos_added"] = a["grad_cos_baked_vs_truth"] - a["grad_cos_network_vs_truth"]
+    if peer:
+        from . import query_peer
+
+        res["peer"] = query_peer.run(seq, eng, m["messages"], pts, gt, res["bake"]["wall_s"], say)
 
     say("4/6 latency: in-process and over Zenoh, baked and network")
     res["latency"] = []
@@ -307,5 +311,9 @@ def report(res: dict) -> str:
                          f"{x['inproc']['p50']:.2f} / {x['inproc']['p99']:.2f} | {x['inproc_pts_s']:,.0f} | "
                          f"{x['zenoh']['p50']:.2f} / {x['zenoh']['p95']:.2f} / {x['zenoh']['p99']:.2f} | "
                          f"{x['zenoh_pts_s']:,.0f} |")
+    if res.get("peer"):
+        from .query_peer import report as peer_report
+
+        lines += ["", peer_report(res["peer"])]
     lines += ["", load_report(pl)]
     return "\n".join(lines)

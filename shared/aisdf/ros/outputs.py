@@ -31,6 +31,7 @@ from pathlib import Path
 
 import numpy as np
 from pydantic import Field
+from scipy import ndimage
 
 from .. import keys, protocol, query_messages, transport
 from ..config import ServiceConfig
@@ -40,6 +41,7 @@ from . import rmw_zenoh as rz
 from .outputs_services import MapServices
 
 log = logging.getLogger("aisdf.ros.outputs")
+COARSE = 2  # the coarse pass samples every other column (10 cm at 5 cm cells: the observed voxels)
 
 
 class Ros2OutputsConfig(ServiceConfig):
@@ -61,7 +63,7 @@ class Ros2OutputsConfig(ServiceConfig):
     up: tuple[float, float, float] | None = Field(None, description="the world's up direction; None: +z when the "
                                                   "Atlanta vertical is within 30 degrees of z, else from the surfels")
     rate_hz: float = Field(1.0, gt=0, description="how often the grid and the slice are refreshed")
-    tile: int = Field(64, ge=4, description="columns per tile side (tiles are re-sampled where the map changed)")
+    tile: int = Field(64, ge=4, multiple_of=2, description="columns per tile side (tiles are re-sampled where the map changed)")
     fuse_margin_m: float = Field(0.3, ge=0, description="a changed submap's box grown by this (fused answers)")
     full_refresh_s: float = Field(30.0, gt=0, description="every tile re-sampled at least this often")
     mesh_period_s: float = Field(10.0, gt=0, description="how often the mesh is published while the map changes")
@@ -88,12 +90,13 @@ class MapOutputs:
         self._index_seen: dict[str, int] = {}  # submap id -> version at the last grid
         self.ground: slices.Ground | None = None
         self.tiles: dict[tuple[int, int], slices.Slice] = {}
-        self.version: tuple[int, int] | None = None  # (epoch, version) of the last grid
+        self.version: tuple | None = None  # (epoch, version) of the last grid's map, and its surfel map's
         self._surfels_sent: tuple[int, int] | None = None
         self._mesh_sent: tuple[int, int] | None = None
         self._last_full = self._last_mesh = 0.0
         self.counts = {"grids": 0, "tiles": 0, "clouds": 0, "surfel_maps": 0, "meshes": 0, "errors": 0}
         self.last_grid: np.ndarray | None = None
+        self.took: dict[str, float] = {}  # seconds the last publication of each took
         self._decls = [self._follow(keys.MAP_SURFELS, self._on_surfels), self._follow(keys.MAP_INDEX, self._on_index)]
 
     # ------------------------------------------------------------------ following the map
@@ -159,15 +162,38 @@ class MapOutputs:
         return out
 
     def sample_tile(self, t: tuple[int, int]) -> slices.Slice:
-        """The band over one tile's columns, from the query service (one request)."""
+        """The band over one tile's columns, from the query service: a coarse pass (every
+        ``COARSE``-th column, every height) finds the observed columns, then one request
+        samples the columns within a coarse cell of them at every height. Columns far from
+        observed space are unobserved without asking (the bake does not cover them: each of
+        their samples would cost a network evaluation)."""
         cfg, T = self.cfg, self.cfg.tile
         levels = slices.band_levels(cfg.band, cfg.resolution)
-        i = (t[0] * T + np.arange(T)) * cfg.resolution
-        j = (t[1] * T + np.arange(T)) * cfg.resolution
-        g = np.stack(np.meshgrid(i, j, levels, indexing="ij"), axis=-1).reshape(-1, 3)
-        rep = self._ask(query_messages.SdfRequest(self.ground.to_world(g).astype(np.float32), observed=True))
-        shape = (T, T, len(levels))
-        return slices.slice_columns(rep.sdf.reshape(shape), rep.observed.reshape(shape), cfg.resolution)
+        cols = np.stack(np.meshgrid(t[0] * T + np.arange(T), t[1] * T + np.arange(T), indexing="ij"), -1)
+        C = COARSE
+        coarse = cols[C // 2::C, C // 2::C]
+        lv = levels
+        g = np.concatenate([np.repeat(coarse.reshape(-1, 2) * cfg.resolution, len(lv), 0),
+                            np.tile(lv, coarse.shape[0] * coarse.shape[1])[:, None]], axis=1)
+        rep = self._ask(query_messages.SdfRequest(self.ground.to_world(g).astype(np.float32), observed=True,
+                                                  fresh=False))
+        seen = ndimage.binary_dilation(rep.observed.reshape(*coarse.shape[:2], len(lv)).any(-1),
+                                       structure=np.ones((3, 3), bool))
+        want = np.repeat(np.repeat(seen, C, 0), C, 1)[:T, :T]
+        obstacle, observed = np.zeros((T, T), bool), np.zeros((T, T), bool)
+        if not want.any():
+            return slices.Slice(obstacle, observed)
+        ij = cols[want]
+        g = np.concatenate([np.repeat(ij * cfg.resolution, len(levels), 0),
+                            np.tile(levels, len(ij))[:, None]], axis=1)
+        # the bake as it is (protocol 1.9's fresh: false): a grid a few seconds old costs the
+        # query service a lookup per sample instead of the newest networks' evaluation
+        rep = self._ask(query_messages.SdfRequest(self.ground.to_world(g).astype(np.float32), observed=True,
+                                                  fresh=False))
+        sl = slices.slice_columns(rep.sdf.reshape(len(ij), len(levels)), rep.observed.reshape(len(ij), len(levels)),
+                                  cfg.resolution)
+        obstacle[want], observed[want] = sl.obstacle, sl.observed
+        return slices.Slice(obstacle, observed)
 
     def refresh_grid(self, now: float) -> bool:
         """Re-sample what changed and publish the grid and the slice; True when published."""
@@ -179,8 +205,9 @@ class MapOutputs:
         if ground.height is None:
             log.info("no floor in the surfel map yet: no occupancy grid")
             return False
-        probe = self._ask(query_messages.SdfRequest(ground.to_world(np.zeros((1, 3))).astype(np.float32)))
-        version = (probe.map_epoch, probe.map_version)
+        probe = self._ask(query_messages.SdfRequest(ground.to_world(np.zeros((1, 3))).astype(np.float32), fresh=False))
+        # a new surfel map changes fused answers: it counts as a new version of the map
+        version = (probe.map_epoch, probe.map_version, smap.epoch, smap.version)
         moved = (self.ground is None or not np.allclose(ground.R, self.ground.R, atol=1e-3)
                  or abs(ground.height - self.ground.height) > self.cfg.resolution / 2)
         if moved:
@@ -192,6 +219,7 @@ class MapOutputs:
         wanted = {(a, b) for a in range(lo[0], hi[0] + 1) for b in range(lo[1], hi[1] + 1)}
         new = version != self.version
         if moved or (new and (self.version is None or version[0] != self.version[0] or idx is None
+                              or version[2:] != self.version[2:]
                               or now - self._last_full >= self.cfg.full_refresh_s)):
             dirty = wanted  # everything: a new incarnation, one network, the floor moved, or the periodic refresh
             self._last_full = now
@@ -261,9 +289,12 @@ class MapOutputs:
         """One round: surfels, the grid and the slice where the map changed, the mesh when due.
         Errors (no map yet, a busy or absent query service) are logged; the next tick retries."""
         now = time.monotonic() if now is None else now
-        for step in (self.publish_surfels, lambda: self.refresh_grid(now), lambda: self.publish_mesh(now)):
+        for name, step in (("surfels", self.publish_surfels), ("grid", lambda: self.refresh_grid(now)),
+                           ("mesh", lambda: self.publish_mesh(now))):
+            t = time.monotonic()
             try:
-                step()
+                if step():
+                    self.took[name] = time.monotonic() - t
             except protocol.ProtocolError as e:
                 log.info("the query service answered %s: %s", e.code, e.message)
                 break
