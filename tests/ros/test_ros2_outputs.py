@@ -260,3 +260,36 @@ def test_ros2_outputs_end_to_end():
 
 
 
+
+
+def test_aisdf_ros2_runs_as_a_process_and_stops_cleanly(tmp_path):
+    """``aisdf ros2`` as users start it: its node, topics and services appear in the ROS graph
+    (before any map exists), and SIGTERM stops it with exit code 0."""
+    import signal
+    import subprocess
+    import sys
+
+    from aisdf.stack import endpoint, free_port
+
+    port = free_port()
+    with Stack(services=("query",), namespace=NS, ports={"query": port}) as st:
+        p = subprocess.Popen([sys.executable, "-m", "aisdf.cli", "ros2", "--namespace", NS, "--no-multicast-scouting",
+                              "--connect", endpoint(port), "--ros-connect", endpoint(port), "--map-dir",
+                              str(tmp_path)], stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+        try:
+            with rz.open_ros_session([st.endpoints[0]]) as ros:
+                def graph():
+                    return {(e.kind, e.topic) for e in rz.discover(ros, 0, 1.0) if e.node_name == "aisdf"}
+
+                wait_for(lambda: len(graph()) >= 8, 60, period=1.0, what="the aisdf node's entities")
+                g = graph()
+            assert {(rz.PUBLISHER, "/aisdf/occupancy_grid"), (rz.PUBLISHER, "/aisdf/esdf_pointcloud"),
+                    (rz.PUBLISHER, "/aisdf/surfels"), (rz.PUBLISHER, "/aisdf/mesh"),
+                    (rz.SERVICE, "/aisdf/get_distance_window"), (rz.SERVICE, "/aisdf/save_map"),
+                    (rz.SERVICE, "/aisdf/load_map"), (rz.NODE, None)} <= g
+            p.send_signal(signal.SIGTERM)
+            assert p.wait(30) == 0, p.stdout.read()
+        finally:
+            if p.poll() is None:
+                p.kill()
+                p.wait(5)
