@@ -78,7 +78,7 @@ class SdfClient:
         network's answer instead of the baked field's. ``unknown`` (protocol 1.6): also return
         per point the distance to the nearest space no keyframe has seen (``reply.unknown``;
         with ``radii``, that of the sphere's surface): ``min(sdf, unknown)`` is the distance
-        of a planner that treats unknown space as occupied. ``fresh=False`` (protocol 1.9):
+        of a planner that treats unknown space as occupied. ``fresh=False`` (protocol 1.10):
         the baked field answers even when it trails the newest map (cheaper for the service;
         ``map_version`` and ``map_age_s`` say which map).
 
@@ -110,14 +110,14 @@ class SdfClient:
 
     def box(self, min_corner, size, resolution: float, gradient: bool = False, observed: bool = False,
             unknown: bool = False, exact: bool = False, source: str = "fused",
-            collision_epsilon: float | None = None) -> query_messages.SdfReply:
+            collision_epsilon: float | None = None, fresh: bool = True) -> query_messages.SdfReply:
         """A local distance window (protocol 1.9): the dense grid of samples ``resolution``
         apart over the world-axis-aligned box ``[min_corner, min_corner + size]``, in one
         request of a few bytes. ``reply.box`` gives the lattice (origin, resolution, shape);
         ``reply.grid("sdf")`` is (nx, ny, nz), ``reply.grid("gradient")`` (nx, ny, nz, 3)."""
         b = query_messages.Box.around(min_corner, size, resolution)
         req = query_messages.SdfRequest(np.zeros((0, 3), np.float32), gradient, collision_epsilon, source, None,
-                                        observed, exact, unknown, b)
+                                        observed, exact, unknown, b, fresh)
         msg = transport.query(self._session, self._key(keys.QUERY_SDF), req.to_msg(), self.timeout)
         return query_messages.SdfReply.from_msg(msg)
 

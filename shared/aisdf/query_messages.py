@@ -38,9 +38,14 @@ class Box:
             raise _bad("the box's corner, size and resolution must be finite")
         if r <= 0 or np.any(sz < 0):
             raise _bad(f"a box needs a positive resolution and non-negative sizes, got {r} and {sz.tolist()}")
-        n = np.floor(sz / r + 1e-6).astype(np.int64) + 1
-        if np.prod(n.astype(np.float64)) > 2**40:
-            raise ProtocolError("too_large", f"a box of {n.tolist()} samples")
+        with np.errstate(over="ignore"):
+            far = lo + sz
+        if not np.all(np.isfinite(far)):
+            raise _bad("the box's far corner is not finite")
+        nf = np.floor(sz / r * (1 + 1e-9) + 1e-6) + 1
+        if not np.all(np.isfinite(nf)) or float(np.prod(nf)) > 2**40:
+            raise ProtocolError("too_large", f"a box of {nf.tolist()} samples")
+        n = nf.astype(np.int64)
         return cls(tuple(float(x) for x in lo), r, tuple(int(x) for x in n))
 
     @property
@@ -90,10 +95,10 @@ class Box:
             o = [float(x) for x in obj["origin"]]
             r = float(obj["resolution"])
             n = [int(x) for x in obj["shape"]]
-        except (KeyError, TypeError, ValueError) as e:
+        except (KeyError, TypeError, ValueError, OverflowError) as e:
             raise _bad(f"malformed 'box' in a reply: {e}") from None
-        if len(o) != 3 or len(n) != 3:
-            raise _bad("a reply's 'box' needs 3 origin values and 3 sizes")
+        if len(o) != 3 or len(n) != 3 or min(n) < 1:
+            raise _bad("a reply's 'box' needs 3 origin values and 3 positive sizes")
         return cls(tuple(o), r, tuple(n))
 
 
@@ -109,7 +114,7 @@ class SdfRequest:
     exact: bool = False  # evaluate the network now instead of the baked field
     unknown: bool = False  # protocol 1.6: also answer each point's distance to unobserved space
     box: Box | None = None  # protocol 1.9: the points are this lattice (sent as the box, not the points)
-    fresh: bool = True  # protocol 1.9: False = the bake answers even when it trails (no answer from the newest map)
+    fresh: bool = True  # protocol 1.10: False = the bake answers even when it trails (no answer from the newest map)
 
     def to_msg(self) -> dict:
         msg = {"v": VERSION, "gradient": bool(self.gradient), "source": self.source}

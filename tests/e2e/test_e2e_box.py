@@ -109,3 +109,14 @@ def test_box_messages_round_trip_and_check_their_sizes():
     bad["box"]["shape"] = [6, 1, 4]
     with pytest.raises(protocol.ProtocolError):
         query_messages.SdfReply.from_msg(bad)
+    bad["box"]["shape"] = [float("inf"), 1, 1]
+    with pytest.raises(protocol.ProtocolError):
+        query_messages.SdfReply.from_msg(bad)
+    # sizes that overflow, far corners that are not finite: refused, never a wrapped shape
+    with pytest.raises(protocol.ProtocolError) as e:
+        query_messages.Box.around([0, 0, 0], [1e10, 0, 0], 1e-10)
+    assert e.value.code == "too_large"
+    with pytest.raises(protocol.ProtocolError) as e:
+        query_messages.Box.around([1e308, 0, 0], [1e308, 0, 0], 1.0)
+    assert e.value.code == "bad_request"
+    assert query_messages.Box.around([0, 0, 0], [4.0, 0, 0], 0.05).shape == (81, 1, 1)

@@ -271,7 +271,7 @@ def test_planners_first_while_requests_wait_a_trailing_bake_answers(submap_map):
     np.testing.assert_array_equal(busy.sdf, alone.sdf)
     assert busy.map_version == 2 and e.held == 1
 
-    # 1.9: an asker that takes the bake as it is (fresh: false; aisdf ros2's grid) gets it even
+    # 1.10: an asker that takes the bake as it is (fresh: false; aisdf ros2's grid) gets it even
     # alone, through the wire's encoding too
     e.fresh_busy, e.waiting = False, (lambda: 0)
     req = query_messages.SdfRequest(pts.astype(np.float32), gradient=True, fresh=False)

@@ -56,9 +56,11 @@ def room(Q=np.eye(3), ceiling=True):
 def test_ground_finds_up_and_the_floor_in_any_world_frame():
     g = slices.ground_from_surfels([0, 0, 1.0], room())
     assert g.z_up and g.height == pytest.approx(0.0036, abs=1e-3)  # area-weighted: 9 m2 at 0, 6 m2 at 0.01
-    # the vertical's sign does not matter; a vertical a degree off z snaps to z
+    # the vertical's sign does not matter; a vertical 0.3 degrees off z snaps to z, 2 degrees does not
     assert slices.ground_from_surfels([0, 0, -1.0], room()).z_up
-    assert slices.ground_from_surfels(Rotation.from_euler("x", 1, degrees=True).apply([0, 0, 1.0]), room()).z_up
+    assert slices.ground_from_surfels(Rotation.from_euler("x", 0.3, degrees=True).apply([0, 0, 1.0]), room()).z_up
+    tilted = slices.ground_from_surfels(Rotation.from_euler("x", 2, degrees=True).apply([0, 0, 1.0]), room())
+    assert not tilted.z_up and tilted.up[2] > 0.99
     # a world frame that is not z-up: up from the surfels (the side facing up covers more area)
     for euler in ((100, 20, 0), (-120, 0, 45), (60, 0, 90)):
         Q = Rotation.from_euler("xyz", euler, degrees=True).as_matrix()
@@ -100,6 +102,9 @@ def test_slice_and_occupancy_values():
     np.testing.assert_allclose(clear, d, atol=1e-12)
     assert (grid[d < 0.2] == 100).all() and (grid[(d >= 0.2) & (ii < 25)] == 0).all()
     assert (grid[(d >= 0.2) & (ii >= 25)] == -1).all()
+    # radius 0 (Nav2's inflation layer inflates): the obstacle columns alone
+    grid0, _ = slices.occupancy(s.obstacle, s.observed, 0.05, 0.0)
+    assert grid0[10, 5] == 100 and (grid0 == 100).sum() == 1
 
 
 def test_grid_message_places_each_cell_in_the_world():
@@ -231,6 +236,12 @@ def test_ros2_outputs_end_to_end():
             assert rep.success, rep.message
             dims = [(d.label, d.size) for d in rep.esdf_and_gradients.layout.dim]
             assert dims == [("x", 5), ("y", 4), ("z", 3), ("channel", 4)] and rep.map_version == 1
+            # ROS's layout: dim[i].stride is the product of the sizes from i on
+            assert [d.stride for d in rep.esdf_and_gradients.layout.dim] == [240, 48, 12, 4]
+            # a float32 voxel size of 0.05 still gives every sample of a 4 m edge (81)
+            line = client.call(Req(aabb_min_m=P(x=c[0], y=c[1], z=c[2]), aabb_size_m=V(x=4.0, y=0.0, z=0.0),
+                                   voxel_size_m=0.05, gradient=False), timeout=30)
+            assert line.success and [d.size for d in line.esdf_and_gradients.layout.dim] == [81, 1, 1]
             arr = np.asarray(rep.esdf_and_gradients.data).reshape(5, 4, 3, 4)
             with SdfClient(NS, st.client_zenoh) as cl:
                 ref = cl.box(c, [0.4, 0.3, 0.2], 0.1, gradient=True)
@@ -293,3 +304,62 @@ def test_aisdf_ros2_runs_as_a_process_and_stops_cleanly(tmp_path):
             if p.poll() is None:
                 p.kill()
                 p.wait(5)
+
+
+def test_the_grid_follows_the_submaps_that_changed_and_the_bake_catching_up():
+    """Change tracking without the services (a fake session and node, the tiles' sampling
+    recorded): tiles are sampled again where a changed submap's box reaches; a grid sampled while
+    the bake trailed the index is sampled again once the bake catches up (never stale for good);
+    a new epoch starts over."""
+    from aisdf.submaps.grid import SubmapGrid
+
+    class Pub:
+        def __init__(self):
+            self.msgs = []
+
+        def publish(self, m):
+            self.msgs.append(m)
+
+    class FakeNode:
+        typestore = rz.open_typestore("jazzy")
+
+        def create_publisher(self, *a, **k):
+            return Pub()
+
+    class FakeSession:
+        def declare_subscriber(self, *a, **k):
+            return type("Decl", (), {"undeclare": lambda self: None})()
+
+    out = MapOutputs(Ros2OutputsConfig(namespace=NS), FakeSession(), FakeNode())
+    sampled: list = []
+
+    def sample(t):
+        sampled.append(t)
+        return slices.Slice(np.zeros((64, 64), bool), np.ones((64, 64), bool))
+
+    out.sample_tile = sample
+    out.surfel_map = protocol.SurfelMap(1, 0.0, np.array([0, 0, 1.0]), np.zeros((0, 3)), room())
+    grid = SubmapGrid(np.eye(3), np.zeros(3), 2.0, 3.0, 0.5).to_msg()
+
+    def index(version, versions, epoch=1):
+        return protocol.SubmapIndex(version, 0.0, grid, {k: {"version": v, "step": 1} for k, v in versions.items()},
+                                    epoch)
+
+    out.index = index(6, {"0_0_0": 6, "2_0_0": 6})
+    assert out.refresh_grid(0.0, (1, 5))  # the bake trails the index: every tile, from the older bake
+    every = set(sampled)
+    assert len(every) == 6 and out.counts["grids"] == 1
+    sampled.clear()
+    assert out.refresh_grid(1.0, (1, 6))  # caught up: its submaps' tiles again
+    assert set(sampled) == {(0, -1), (0, 0), (-1, -1), (-1, 0), (1, -1), (1, 0)} & every and sampled
+    sampled.clear()
+    assert not out.refresh_grid(2.0, (1, 6)) and not sampled  # nothing changed
+    out.index = index(7, {"0_0_0": 6, "2_0_0": 7})
+    assert out.refresh_grid(3.0, (1, 7))
+    assert set(sampled) == {(1, -1), (1, 0)}  # only where submap 2_0_0's box (grown) reaches
+    sampled.clear()
+    out.index = index(8, {"0_0_0": 6, "2_0_0": 7}, epoch=2)
+    assert out.refresh_grid(4.0, (2, 8)) and set(sampled) == every  # a new epoch: everything
+    sampled.clear()
+    out.index = index(9, {"0_0_0": 9, "2_0_0": 7}, epoch=2)
+    assert out.refresh_grid(40.0, (2, 9)) and set(sampled) == every  # the periodic refresh (30 s)

@@ -363,7 +363,7 @@ class QueryEngine:
             sdf, grad, covered = bk.field.query(pts, req.gradient)
             trails = self._bake_trails(bk)
             if trails and not req.fresh:
-                trails = False  # (1.9) the asker takes the bake as it is
+                trails = False  # (1.10) the asker takes the bake as it is
             elif trails and not self.fresh_busy and self.waiting() > 0:
                 # Planners first: with requests waiting, the changed regions are not evaluated
                 # afresh; the bake answers, and the reply says its map's version and age.

@@ -42,6 +42,7 @@ from .outputs_services import MapServices
 
 log = logging.getLogger("aisdf.ros.outputs")
 COARSE = 2  # the coarse pass samples every other column (10 cm at 5 cm cells: the observed voxels)
+CHUNK = 500_000  # points per request (the query service refuses more than max_points, 1,000,000 by default)
 
 
 class Ros2OutputsConfig(ServiceConfig):
@@ -137,6 +138,18 @@ class MapOutputs:
                               self.cfg.timeout_s)
         return query_messages.SdfReply.from_msg(msg)
 
+    def _sample(self, g: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(sdf, observed) at grid points ``g``, from the bake as it is (protocol 1.10's fresh:
+        false: a grid a few seconds old costs the query service a lookup per sample instead of
+        the newest networks' evaluation), in requests of at most ``CHUNK`` points."""
+        pts = self.ground.to_world(g).astype(np.float32)
+        sdf, obs = [], []
+        for i in range(0, len(pts), CHUNK):
+            rep = self._ask(query_messages.SdfRequest(pts[i:i + CHUNK], observed=True, fresh=False))
+            sdf.append(rep.sdf)
+            obs.append(rep.observed)
+        return np.concatenate(sdf), np.concatenate(obs)
+
     # ------------------------------------------------------------------ the grid
 
     def _tile_range(self) -> tuple[np.ndarray, np.ndarray] | None:
@@ -175,9 +188,8 @@ class MapOutputs:
         lv = levels
         g = np.concatenate([np.repeat(coarse.reshape(-1, 2) * cfg.resolution, len(lv), 0),
                             np.tile(lv, coarse.shape[0] * coarse.shape[1])[:, None]], axis=1)
-        rep = self._ask(query_messages.SdfRequest(self.ground.to_world(g).astype(np.float32), observed=True,
-                                                  fresh=False))
-        seen = ndimage.binary_dilation(rep.observed.reshape(*coarse.shape[:2], len(lv)).any(-1),
+        _, coarse_seen = self._sample(g)
+        seen = ndimage.binary_dilation(coarse_seen.reshape(*coarse.shape[:2], len(lv)).any(-1),
                                        structure=np.ones((3, 3), bool))
         want = np.repeat(np.repeat(seen, C, 0), C, 1)[:T, :T]
         obstacle, observed = np.zeros((T, T), bool), np.zeros((T, T), bool)
@@ -186,17 +198,19 @@ class MapOutputs:
         ij = cols[want]
         g = np.concatenate([np.repeat(ij * cfg.resolution, len(levels), 0),
                             np.tile(levels, len(ij))[:, None]], axis=1)
-        # the bake as it is (protocol 1.9's fresh: false): a grid a few seconds old costs the
-        # query service a lookup per sample instead of the newest networks' evaluation
-        rep = self._ask(query_messages.SdfRequest(self.ground.to_world(g).astype(np.float32), observed=True,
-                                                  fresh=False))
-        sl = slices.slice_columns(rep.sdf.reshape(len(ij), len(levels)), rep.observed.reshape(len(ij), len(levels)),
-                                  cfg.resolution)
+        sdf, obs = self._sample(g)
+        sl = slices.slice_columns(sdf.reshape(len(ij), len(levels)), obs.reshape(len(ij), len(levels)), cfg.resolution)
         obstacle[want], observed[want] = sl.obstacle, sl.observed
         return slices.Slice(obstacle, observed)
 
-    def refresh_grid(self, now: float) -> bool:
-        """Re-sample what changed and publish the grid and the slice; True when published."""
+    def probe(self) -> tuple[int, int]:
+        """(epoch, version) of the map behind the bake's answers (one point, fresh: false)."""
+        rep = self._ask(query_messages.SdfRequest(np.zeros((1, 3), np.float32), fresh=False))
+        return rep.map_epoch, rep.map_version
+
+    def refresh_grid(self, now: float, baked: tuple[int, int]) -> bool:
+        """Re-sample what changed and publish the grid and the slice; True when published.
+        ``baked``: the (epoch, version) the bake answers for (:meth:`probe`)."""
         with self._lock:
             smap, idx = self.surfel_map, self.index
         if smap is None:
@@ -205,22 +219,21 @@ class MapOutputs:
         if ground.height is None:
             log.info("no floor in the surfel map yet: no occupancy grid")
             return False
-        probe = self._ask(query_messages.SdfRequest(ground.to_world(np.zeros((1, 3))).astype(np.float32), fresh=False))
-        # a new surfel map changes fused answers: it counts as a new version of the map
-        version = (probe.map_epoch, probe.map_version, smap.epoch, smap.version)
+        # a new surfel map changes fused answers near the surfels that moved: it counts as a
+        # change, left to the submaps that changed with it and to the periodic refresh
+        version = (*baked, smap.epoch, smap.version)
         moved = (self.ground is None or not np.allclose(ground.R, self.ground.R, atol=1e-3)
                  or abs(ground.height - self.ground.height) > self.cfg.resolution / 2)
-        if moved:
-            self.ground, self.tiles = ground, {}
+        epoch = self.version is None or version[0] != self.version[0]
+        if moved or epoch:
+            self.ground, self.tiles, self._index_seen = ground, {}, {}
         rng = self._tile_range()
         if rng is None:
             return False
         lo, hi = rng
         wanted = {(a, b) for a in range(lo[0], hi[0] + 1) for b in range(lo[1], hi[1] + 1)}
         new = version != self.version
-        if moved or (new and (self.version is None or version[0] != self.version[0] or idx is None
-                              or version[2:] != self.version[2:]
-                              or now - self._last_full >= self.cfg.full_refresh_s)):
+        if moved or (new and (epoch or idx is None or now - self._last_full >= self.cfg.full_refresh_s)):
             dirty = wanted  # everything: a new incarnation, one network, the floor moved, or the periodic refresh
             self._last_full = now
         else:
@@ -230,7 +243,9 @@ class MapOutputs:
         for t in sorted(dirty):
             self.tiles[t] = self.sample_tile(t)
         self.counts["tiles"] += len(dirty)
-        if idx is not None:
+        # The submaps count as sampled only once the bake answers for the index's map: until
+        # then the tiles held the bake's older values, and its catching up re-samples them.
+        if idx is not None and idx.epoch == baked[0] and baked[1] >= idx.version:
             self._index_seen = {sid: int(m["version"]) for sid, m in idx.submaps.items()}
         self.version = version
         self.publish_grid(lo, hi)
@@ -274,14 +289,14 @@ class MapOutputs:
         self.counts["surfel_maps"] += 1
         return True
 
-    def publish_mesh(self, now: float) -> bool:
-        if self.version is None or self.version == self._mesh_sent or now - self._last_mesh < self.cfg.mesh_period_s:
+    def publish_mesh(self, now: float, baked: tuple[int, int]) -> bool:
+        if baked == self._mesh_sent or now - self._last_mesh < self.cfg.mesh_period_s:
             return False
         msg = transport.query(self.session, keys.key(self.cfg.namespace, keys.QUERY_MESH),
                               query_messages.MeshRequest(self.cfg.mesh_resolution).to_msg(), max(60.0, self.cfg.timeout_s))
         rep = query_messages.MeshReply.from_msg(msg)
         self.pub_mesh.publish(outmsgs.mesh_marker(self.ts, rep.vertices, rep.faces, self.cfg.frame_id, time.time_ns()))
-        self._mesh_sent, self._last_mesh = self.version, now
+        self._mesh_sent, self._last_mesh = baked, now
         self.counts["meshes"] += 1
         return True
 
@@ -289,15 +304,19 @@ class MapOutputs:
         """One round: surfels, the grid and the slice where the map changed, the mesh when due.
         Errors (no map yet, a busy or absent query service) are logged; the next tick retries."""
         now = time.monotonic() if now is None else now
-        for name, step in (("surfels", self.publish_surfels), ("grid", lambda: self.refresh_grid(now)),
-                           ("mesh", lambda: self.publish_mesh(now))):
+        baked: list = []
+        for name, step in (("surfels", self.publish_surfels), ("map", lambda: baked.append(self.probe())),
+                           ("grid", lambda: self.refresh_grid(now, baked[0])),
+                           ("mesh", lambda: self.publish_mesh(now, baked[0]))):
             t = time.monotonic()
             try:
                 if step():
                     self.took[name] = time.monotonic() - t
             except protocol.ProtocolError as e:
-                log.info("the query service answered %s: %s", e.code, e.message)
-                break
+                (log.info if e.code in ("no_map", "busy") else log.warning)(
+                    "the query service answered %s: %s", e.code, e.message)
+                if name in ("surfels", "map"):
+                    break
             except TimeoutError as e:
                 log.warning("no answer from the query service: %s", e)
                 break

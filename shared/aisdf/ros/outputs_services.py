@@ -45,7 +45,9 @@ class MapServices:
         try:
             lo = (req.aabb_min_m.x, req.aabb_min_m.y, req.aabb_min_m.z)
             size = (req.aabb_size_m.x, req.aabb_size_m.y, req.aabb_size_m.z)
-            box = query_messages.Box.around(lo, size, req.voxel_size_m)
+            # voxel_size_m is a float32: 0.05 arrives as 0.0500000007, which would lose the far
+            # face of a 4 m box; its shortest decimal is what the caller meant
+            box = query_messages.Box.around(lo, size, float(f"{np.float32(req.voxel_size_m):.7g}"))
             ask = query_messages.SdfRequest(np.zeros((0, 3), np.float32), bool(req.gradient), box=box)
             rep = query_messages.SdfReply.from_msg(transport.query(
                 self.session, keys.key(self.cfg.namespace, keys.QUERY_SDF), ask.to_msg(), self.cfg.timeout_s))
@@ -58,7 +60,7 @@ class MapServices:
             grid = np.concatenate([grid, rep.grid("gradient")], axis=-1)
         labels = ["x", "y", "z"] + (["channel"] if req.gradient else [])
         shape = grid.shape if req.gradient else grid.shape[:3]
-        strides = np.cumprod([1, *shape[::-1]])[::-1][1:]
+        strides = np.cumprod(shape[::-1])[::-1]  # ROS's MultiArrayLayout: dim[i].stride = prod(size[i:])
         dims = [outmsgs.make(self.ts, "std_msgs/msg/MultiArrayDimension", label=lab, size=int(n), stride=int(s))
                 for lab, n, s in zip(labels, shape, strides)]
         layout = outmsgs.make(self.ts, "std_msgs/msg/MultiArrayLayout", dim=dims, data_offset=0)

@@ -4,7 +4,8 @@ the floor from the SDF sampled over it.
 
 **Up.** The Atlanta frame's vertical has no sign. When it lies within 30 degrees of the world's
 z axis, up is the side of it towards +z (REP-103: fixed frames are z-up), and within 3 degrees
-it *is* +z, so a z-up world gets a grid in its own x-y plane. Otherwise the horizontal surfels
+it *is* +z (a grid tilted 2 degrees rises 3.5 cm a metre: the band would cut the floor), so a
+z-up world gets a grid in its own x-y plane. Otherwise the horizontal surfels
 decide: a floor's and a table top's surfels face up (their normals point into free space),
 a ceiling's down, and up is the side whose surfels cover more area (a robot's camera sees far
 more floor than ceiling; geometry alone cannot tell a floor from a ceiling, which face each
@@ -19,7 +20,8 @@ within ``surface_m`` of a surface (the SDF below it); samples ``step`` apart ver
 every surface in the band when ``step <= 2 surface_m`` (the sample nearest a surface point is
 at most ``surface_m`` from it). The clearance of a column is the 2D Euclidean distance to the
 nearest obstacle column (scipy's exact distance transform); the grid holds 100 where the
-clearance is below the robot radius, -1 elsewhere where no sample of the column was observed
+clearance is below the robot radius (and on every obstacle column, also with a radius of 0,
+for consumers that inflate the grid themselves, as Nav2's inflation layer does), -1 elsewhere where no sample of the column was observed
 (unknown) and 0 in the rest, as ``nav_msgs/OccupancyGrid`` and nvblox's static occupancy do.
 """
 
@@ -31,7 +33,7 @@ import numpy as np
 from scipy import ndimage
 
 Z = np.array([0.0, 0.0, 1.0])
-SNAP_DEG, HINT_DEG = 3.0, 30.0
+SNAP_DEG, HINT_DEG = 0.5, 30.0
 BIN_M, FLOOR_SHARE = 0.05, 0.3
 
 
@@ -156,6 +158,6 @@ def clearance(obstacle: np.ndarray, resolution: float) -> np.ndarray:
 def occupancy(obstacle: np.ndarray, observed: np.ndarray, resolution: float, robot_radius: float):
     """(int8 grid (nx, ny): 100 / 0 / -1, clearance (nx, ny) metres)."""
     d = clearance(obstacle, resolution)
-    grid = np.where(d < robot_radius, 100, 0).astype(np.int8)
+    grid = np.where(obstacle | (d < robot_radius), 100, 0).astype(np.int8)
     grid[~observed & (d >= robot_radius)] = -1
     return grid, d
