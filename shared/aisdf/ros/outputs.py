@@ -8,7 +8,7 @@
 * ``/aisdf/surfels`` (``visualization_msgs/MarkerArray``, transient local): one cube per
   planar surfel, coloured by Atlanta direction, whenever the surfel map changes;
 * ``/aisdf/mesh`` (``visualization_msgs/Marker``, triangle list, transient local): the zero
-  level set every ``mesh_period_s`` while the map changes;
+  level set every ``mesh_period_s`` (30 s) while the map changes, on its own thread;
 
 and serving the ROS 2 services of :mod:`aisdf.ros.outputs_services` (the distance window,
 save and load). It is a client of the AiSDF protocol like any planner: it asks the query
@@ -67,7 +67,8 @@ class Ros2OutputsConfig(ServiceConfig):
     tile: int = Field(64, ge=4, multiple_of=2, description="columns per tile side (tiles are re-sampled where the map changed)")
     fuse_margin_m: float = Field(0.3, ge=0, description="a changed submap's box grown by this (fused answers)")
     full_refresh_s: float = Field(30.0, gt=0, description="every tile re-sampled at least this often")
-    mesh_period_s: float = Field(10.0, gt=0, description="how often the mesh is published while the map changes")
+    mesh_period_s: float = Field(30.0, gt=0, description="how often the mesh is published while the map changes "
+                                 "(on its own thread: a floor's takes seconds)")
     mesh_resolution: float = Field(0.1, gt=0, description="the mesh's marching-cubes resolution (m)")
     map_dir: Path = Field(Path("maps"), description="where /aisdf/save_map writes and /aisdf/load_map reads")
     timeout_s: float = Field(30.0, gt=0, description="timeout of requests to the query service")
@@ -98,6 +99,8 @@ class MapOutputs:
         self.counts = {"grids": 0, "tiles": 0, "clouds": 0, "surfel_maps": 0, "meshes": 0, "errors": 0}
         self.last_grid: np.ndarray | None = None
         self.took: dict[str, float] = {}  # seconds the last publication of each took
+        self.mesh_times: list[float] = []  # seconds each mesh of the mesh thread took
+        self.baked: tuple[int, int] | None = None  # (epoch, version) the bake answers for, at the last tick
         self._decls = [self._follow(keys.MAP_SURFELS, self._on_surfels), self._follow(keys.MAP_INDEX, self._on_index)]
 
     # ------------------------------------------------------------------ following the map
@@ -300,14 +303,16 @@ class MapOutputs:
         self.counts["meshes"] += 1
         return True
 
-    def tick(self, now: float | None = None) -> None:
-        """One round: surfels, the grid and the slice where the map changed, the mesh when due.
-        Errors (no map yet, a busy or absent query service) are logged; the next tick retries."""
+    def tick(self, now: float | None = None, mesh: bool = True) -> None:
+        """One round: surfels, the grid and the slice where the map changed, and (``mesh``) the
+        mesh when due. Errors (no map yet, a busy or absent query service) are logged; the next
+        tick retries."""
         now = time.monotonic() if now is None else now
-        baked: list = []
-        for name, step in (("surfels", self.publish_surfels), ("map", lambda: baked.append(self.probe())),
-                           ("grid", lambda: self.refresh_grid(now, baked[0])),
-                           ("mesh", lambda: self.publish_mesh(now, baked[0]))):
+        steps = [("surfels", self.publish_surfels), ("map", self._probe_now),
+                 ("grid", lambda: self.refresh_grid(now, self.baked))]
+        if mesh:
+            steps.append(("mesh", lambda: self.publish_mesh(now, self.baked)))
+        for name, step in steps:
             t = time.monotonic()
             try:
                 if step():
@@ -324,13 +329,35 @@ class MapOutputs:
                 self.counts["errors"] += 1
                 log.exception("publishing the map for ROS 2 failed")
 
+    def _probe_now(self) -> None:
+        self.baked = self.probe()
+
+    def mesh_loop(self, stop: threading.Event) -> None:
+        """The mesh on its own thread (marching a floor takes longer than a grid's period)."""
+        while not stop.wait(1.0):
+            if self.baked is None:
+                continue
+            t = time.monotonic()
+            try:
+                if self.publish_mesh(t, self.baked):
+                    self.took["mesh"] = time.monotonic() - t
+                    self.mesh_times.append(self.took["mesh"])
+            except (protocol.ProtocolError, TimeoutError) as e:
+                log.warning("no mesh from the query service: %s", e)
+            except Exception:  # noqa: BLE001 - the node goes on
+                self.counts["errors"] += 1
+                log.exception("publishing the mesh failed")
+
     def run(self, stop: threading.Event) -> None:
         self._catch_up()
+        mesher = threading.Thread(target=self.mesh_loop, args=(stop,), name="mesh", daemon=True)
+        mesher.start()
         period = 1.0 / self.cfg.rate_hz
         while not stop.is_set():
             t0 = time.monotonic()
-            self.tick(t0)
+            self.tick(t0, mesh=False)
             stop.wait(max(0.0, period - (time.monotonic() - t0)))
+        mesher.join(max(60.0, self.cfg.timeout_s) + 5)
 
     def close(self) -> None:
         for d in self._decls:
