@@ -11,7 +11,7 @@ import stranger_client as sc
 from aisdf import protocol, query_messages
 from aisdf.client import SdfClient
 from aisdf.stack import Stack, wait_for
-from helpers.small_map import train_small_map
+from helpers.small_map import publish_until_baked, train_small_map
 
 pytestmark = pytest.mark.e2e
 NS = "aisdf/e2ebox"
@@ -34,13 +34,7 @@ def test_box_request_answers_the_lattice_as_points_would():
         try:
             wait_for(lambda: info(s), 60, what="the query service")
 
-            def published_and_baked():
-                if smap is not None:
-                    s.put(f"{NS}/map/surfels", protocol.pack(smap.to_msg()), encoding=sc.ENC)
-                s.put(f"{NS}/map/weights", protocol.pack(snap.to_msg()), encoding=sc.ENC)
-                return info(s).get("baked_version") == 1
-
-            wait_for(published_and_baked, 90, period=2.0, what="the map to be baked")
+            publish_until_baked(s, NS, snap, smap)
             # A hand-built box request: 13 x 11 x 9 samples, 0.1 m apart, from the corner.
             status, msg = sc.request(s, f"{NS}/query/sdf", {
                 "v": 1, "box": {"min": lo.tolist(), "size": size, "resolution": res}, "gradient": True,

@@ -16,7 +16,7 @@ from aisdf.metrics import eval_points
 from aisdf.network import NetworkConfig, SDFNetwork, model_spec, state_to_numpy
 from aisdf.stack import Stack, wait_for
 from aisdf.query.engine import QueryEngine
-from helpers.small_map import train_small_map
+from helpers.small_map import publish_until_baked, train_small_map
 
 pytestmark = pytest.mark.e2e
 NS = "aisdf/e2eq"
@@ -58,13 +58,7 @@ def test_query_service_bakes_the_map_and_answers_planner_fields(small_map):
         try:
             wait_for(lambda: info(s), 60, what="the query service")
 
-            def published_and_baked():
-                if smap is not None:
-                    s.put(f"{NS}/map/surfels", protocol.pack(smap.to_msg()), encoding=sc.ENC)
-                s.put(f"{NS}/map/weights", protocol.pack(snap.to_msg()), encoding=sc.ENC)
-                return info(s).get("baked_version") == 1
-
-            wait_for(published_and_baked, 90, period=2.0, what="the map to be baked")
+            publish_until_baked(s, NS, snap, smap)
             pts = eval_points(frames, n_points=3000, every=1, rng=0)
             radii = np.random.default_rng(1).uniform(0, 0.2, len(pts))
             status, msg = sc.request(s, f"{NS}/query/sdf", {

@@ -25,3 +25,23 @@ def train_small_map(measured: bool = True):
         for _ in range(5):
             p.step()
     return seq, frames, p
+
+
+def publish_until_baked(session, ns: str, snap, smap, timeout: float = 90.0) -> None:
+    """Put the map (``smap``'s surfels first, then ``snap``'s weights) on ``ns`` with a plain
+    Zenoh session, again every 2 s, until the query service there has baked version 1."""
+    import time
+
+    import stranger_client as sc
+    from aisdf import protocol
+    from aisdf.stack import wait_for
+
+    def baked():
+        if smap is not None:
+            session.put(f"{ns}/map/surfels", protocol.pack(smap.to_msg()), encoding=sc.ENC)
+            time.sleep(0.2)
+        session.put(f"{ns}/map/weights", protocol.pack(snap.to_msg()), encoding=sc.ENC)
+        status, msg = sc.request(session, f"{ns}/info/query", {"v": 1}, 2.0)
+        return status == "ok" and msg.get("baked_version") == 1
+
+    wait_for(baked, timeout, period=2.0, what="the map to be baked")

@@ -8,7 +8,6 @@ sends it, and requests that must not stop the server."""
 
 from __future__ import annotations
 
-import json
 import struct
 import time
 
@@ -18,7 +17,6 @@ import zenoh
 import zenoh.ext as zext
 from aisdf.ros import interfaces as ifc
 from aisdf.ros import rmw_zenoh as rz
-from aisdf.stack import endpoint, free_port
 
 ADD_TWO_INTS = "example_interfaces/srv/AddTwoInts"
 KNOWN_HASHES = {  # jazzy
@@ -93,19 +91,9 @@ def distance_window_response(ts, box=(2, 3, 4), version=7):
 
 
 @pytest.fixture
-def ros_router():
-    port = free_port()
-    conf = zenoh.Config()
-    conf.insert_json5("mode", '"router"')
-    conf.insert_json5("listen/endpoints", json.dumps([endpoint(port)]))
-    conf.insert_json5("scouting/multicast/enabled", "false")
-    with zenoh.open(conf):
-        yield endpoint(port)
-
-
-@pytest.fixture
 def two_nodes(ros_router):
-    sessions = [rz.open_ros_session([ros_router]), rz.open_ros_session([ros_router])]
+    ep, _router = ros_router
+    sessions = [rz.open_ros_session([ep]), rz.open_ros_session([ep])]
     nodes = []
     try:
         nodes = [rz.Node(sessions[0], "aisdf_server"), rz.Node(sessions[1], "planner")]
@@ -163,7 +151,7 @@ def test_trigger_and_distance_window_round_trips_and_the_graph(two_nodes, ros_ro
     assert token == (f"@ros2_lv/0/{server.zid}/0/{s1.entity.entity_id}/SS/%/%/aisdf_server/%save_map/"
                      f"std_srvs::srv::dds_::Trigger_/{KNOWN_HASHES[ifc.TRIGGER]}/::,10:,:,:,,")
     capsys.readouterr()
-    assert rz.main(["--connect", ros_router, "--timeout", "1"]) == 0
+    assert rz.main(["--connect", ros_router[0], "--timeout", "1"]) == 0
     listing = capsys.readouterr().out
     assert "serves     /save_map  [std_srvs/srv/Trigger]" in listing
     assert "calls      /aisdf/get_distance_window  [aisdf/srv/GetDistanceWindow]" in listing

@@ -15,7 +15,6 @@ import time
 
 import numpy as np
 import pytest
-import zenoh
 import zenoh.ext as zext
 
 from aisdf.ros import rmw_zenoh as rz
@@ -157,17 +156,6 @@ def test_replay_messages_through_the_assembler_give_back_the_synthetic_frames():
 
 
 # ----------------------------------------------------------------------------- over Zenoh, in-process
-
-
-@pytest.fixture
-def ros_router():
-    port = free_port()
-    conf = zenoh.Config()
-    conf.insert_json5("mode", '"router"')
-    conf.insert_json5("listen/endpoints", json.dumps([endpoint(port)]))
-    conf.insert_json5("scouting/multicast/enabled", "false")
-    with zenoh.open(conf) as router:
-        yield endpoint(port), router
 
 
 def test_nodes_talk_discover_and_fetch_static_transforms_late(ros_router, capsys):

@@ -23,7 +23,7 @@ from aisdf.ros.outputs import MapOutputs, Ros2OutputsConfig
 from aisdf.client import SdfClient
 from aisdf.ros.outputs_services import MapServices
 from aisdf.stack import Stack, wait_for
-from helpers.small_map import train_small_map
+from helpers.small_map import publish_until_baked, train_small_map
 
 torch.set_num_threads(1)
 NS = "aisdf/ros2out"
@@ -159,14 +159,7 @@ def test_ros2_outputs_end_to_end():
             out, services = MapOutputs(cfg, sess, node), MapServices(cfg, sess, node)
             time.sleep(0.5)
 
-            def baked():  # the surfels first: the first bake holds them
-                s.put(f"{NS}/map/surfels", protocol.pack(smap.to_msg()), encoding=sc.ENC)
-                time.sleep(0.2)
-                s.put(f"{NS}/map/weights", protocol.pack(snap.to_msg()), encoding=sc.ENC)
-                status, msg = sc.request(s, f"{NS}/info/query", {"v": 1}, 2.0)
-                return status == "ok" and msg.get("baked_version") == 1
-
-            wait_for(baked, 90, period=2.0, what="the map to be baked")
+            publish_until_baked(s, NS, snap, smap)  # the surfels first: the first bake holds them
             wait_for(lambda: out.surfel_map is not None, 10, what="the surfel map")
             out.tick()
             assert out.counts["grids"] == 1 and out.counts["surfel_maps"] == 1 and out.counts["meshes"] == 1
