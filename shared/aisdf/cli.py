@@ -99,7 +99,7 @@ def main(argv: list[str] | None = None) -> None:
     r2 = sub.add_parser("ros2", help="the map for ROS 2 over rmw_zenoh: occupancy grid, ESDF slice, markers, "
                         "services (`aisdf ros2 --help`: its options)", add_help=False, prefix_chars="+")
     r2.add_argument("argv", nargs=argparse.REMAINDER)
-    r2.set_defaults(fn=lambda a: sys.exit(importlib.import_module("aisdf.ros.outputs").cli(a.argv)))
+    r2.set_defaults(fn=lambda a: sys.exit(importlib.import_module("aisdf.ros.outputs_main").cli(a.argv)))
 
     b = sub.add_parser("bench", help="benchmarks: `aisdf bench` = the paper's tables; `aisdf bench query`",
                        description="Without a subcommand: the paper's Tables I-III side by side on the same frames "
