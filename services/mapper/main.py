@@ -23,6 +23,10 @@ Zenoh wiring of an :class:`aisdf.mapper.Mapper` (``mapper: submaps`` or ``single
 * ``info/mapper`` (extension, not part of protocol v1): a map of counters and the
   per-module timings, for the demo and operators.
 * ``control/mapper/save`` and ``control/mapper/load`` (extension): map files, ``aisdf.mapfiles``.
+* ``control/mapper/poses`` (protocol 1.11): new poses for keyframes in the map (a SLAM system's
+  loop closure). Checked in the Zenoh callback (a malformed request changes nothing), applied
+  by the training loop between two steps (``aisdf.mapper.repose``), published and (with a
+  checkpoint directory) checkpointed; then the request is answered with what was done.
 """
 
 from __future__ import annotations
@@ -50,6 +54,7 @@ log = logging.getLogger("aisdf.mapper")
 INFO_KEY = "info/mapper"
 CHECKPOINT_NAME = "mapper-checkpoint.pt"
 JOURNAL_NAME = "mapper-journal.bin"
+POSES_WAIT_S = 60.0  # a pose correction not applied by then is answered busy
 INCARNATION_NAME = "mapper-incarnation.json"
 
 
@@ -77,6 +82,7 @@ class MapperNode:
         self._stop = threading.Event()
         self._decls: list = []
         self._thread = threading.Thread(target=self._train_loop, name="train", daemon=True)
+        self._pose_jobs: collections.deque = collections.deque()  # PoseCorrections for the training loop
         self._restore()
 
     # ------------------------------------------------------------------ checkpoints
@@ -238,6 +244,9 @@ class MapperNode:
         while not self._stop.is_set():
             with self.train_lock:
                 self._add_pending()
+                if self._pose_jobs:
+                    self._apply_poses()
+                    last_pub, dirty = time.monotonic(), False
                 pause = 0.0 if self.pipeline.ready else self.cfg.idle_sleep_s
                 if not pause:
                     try:
@@ -255,6 +264,58 @@ class MapperNode:
                         last_ckpt = now
             if pause:
                 self._stop.wait(pause)
+
+    # ------------------------------------------------------------------ pose corrections
+
+    def on_poses(self, req: dict) -> dict:
+        """``control/mapper/poses`` (protocol 1.11): checked here (ProtocolError: nothing
+        changes), applied by the training loop (``_apply_poses``), answered once published."""
+        corr = protocol.PoseCorrections.from_msg(req)
+        job = {"corr": corr, "done": threading.Event(), "reply": None, "error": None}
+        self._pose_jobs.append(job)
+        if not job["done"].wait(POSES_WAIT_S):
+            raise protocol.ProtocolError("busy", f"the corrections were not applied within {POSES_WAIT_S:.0f} s; "
+                                                 "they may still be: send them again (a pose already held is "
+                                                 "counted unchanged)")
+        if job["error"] is not None:
+            raise job["error"]
+        return job["reply"]
+
+    def _apply_poses(self) -> None:
+        """Every waiting correction batch, between two training steps: the map re-posed, then
+        published (and checkpointed: the journal's keyframes carry the old poses)."""
+        moved = 0
+        jobs = []
+        while self._pose_jobs:
+            job = self._pose_jobs.popleft()
+            jobs.append(job)
+            corr: protocol.PoseCorrections = job["corr"]
+            t = time.perf_counter()
+            try:
+                res = self.pipeline.repose({(corr.sensor, i): T for i, T in corr.as_dict().items()})
+            except ValueError as e:  # checked on arrival: not expected
+                job["error"] = protocol.ProtocolError("bad_request", str(e))
+                continue
+            moved += res["reposed"]
+            for sid in res.get("removed", []):  # gone from the map: no longer answered on get
+                self._latest.pop(f"{keys.MAP_SUBMAPS}/{sid}", None)
+            self.counts["reposed"] = self.counts.get("reposed", 0) + res["reposed"]
+            self.counts["pose_batches"] = self.counts.get("pose_batches", 0) + 1
+            log.info("pose corrections from %s: %d keyframes re-posed, %d unknown, %d unchanged, %d submaps "
+                     "retrained, %d removed; ms: %s", corr.sensor, res["reposed"], len(res["unknown"]),
+                     res["unchanged"], len(res["submaps"]), len(res.get("removed", [])),
+                     " ".join(f"{k} {v:.0f}" for k, v in res["timings_ms"].items()))
+            job["reply"] = protocol.PosesApplied(
+                corr.sensor, res["reposed"], [int(i) for _, i in res["unknown"]], res["unchanged"],
+                len(res["submaps"]), 0, self.epoch, time.perf_counter() - t)
+        if moved and self.pipeline.n_keyframes:
+            self._publish()
+            self.save_checkpoint()
+        for job in jobs:
+            if job["reply"] is not None:
+                job["reply"].version = self.version
+                job["reply"] = job["reply"].to_msg()
+            job["done"].set()
 
     # ------------------------------------------------------------------ map files
 
@@ -327,6 +388,7 @@ class MapperNode:
             transport.serve(s, keys.key(self.ns, INFO_KEY), lambda _req: self.info(), allow_empty=True),
             transport.serve(s, keys.key(self.ns, mapfiles.SAVE_KEY), self.on_save, allow_empty=True),
             transport.serve(s, keys.key(self.ns, mapfiles.LOAD_KEY), self.on_load),
+            transport.serve(s, keys.key(self.ns, keys.CONTROL_POSES), self.on_poses),
             s.liveliness().declare_token(keys.status_key(self.ns, "mapper", uuid.uuid4().hex[:8])),
         ]
         if self.pipeline.n_keyframes:

@@ -10,6 +10,7 @@ MAP_WEIGHTS = "map/weights"
 MAP_SURFELS = "map/surfels"
 MAP_SUBMAPS = "map/submaps"  # protocol 1.3: map/submaps/<id>, one WeightSnapshot (with "submap") per submap
 MAP_INDEX = "map/index"  # protocol 1.3: SubmapIndex, which submaps exist at which version
+CONTROL_POSES = "control/mapper/poses"  # protocol 1.11: PoseCorrections -> PosesApplied (a get)
 QUERY_SDF = "query/sdf"
 QUERY_MESH = "query/mesh"
 STATUS = "status"

@@ -96,6 +96,12 @@ class Mapper(Protocol):
         ``changed_only``: only what changed since the last publication; ``mark`` False:
         nothing is recorded as published (what a publication would cost)."""
 
+    def repose(self, corrections: dict) -> dict:
+        """Protocol 1.11: new camera-to-world poses ``{(sensor, frame_id): (4, 4)}`` for stored
+        keyframes; the map follows (``aisdf.mapper.repose``). Returns ``reposed`` (count),
+        ``unknown`` (keys not held), ``unchanged``, ``submaps`` (ids retrained) and ``timings_ms``.
+        ValueError (and nothing changed) for a key or a pose that is not one."""
+
     def memory(self) -> dict[str, int]:
         """Bytes held, by part: keyframes, model (weights and AdamW moments), observed, measured."""
 

@@ -171,6 +171,15 @@ class MappingPipeline:
                 "observed": int(self.observed.nbytes() + self.intake.coverage.nbytes()),
                 "measured": 0 if self.measured is None else self.measured.nbytes()}
 
+    # ------------------------------------------------------------------ pose corrections
+
+    def repose(self, corrections: dict) -> dict:
+        """New poses for stored keyframes, ``{(sensor, frame_id): T_WC}`` (protocol 1.11):
+        ``aisdf.mapper.repose.repose_single``. ValueError (nothing changed) for a bad one."""
+        from .repose import repose_single
+
+        return repose_single(self, corrections).as_dict()
+
     # ------------------------------------------------------------------ checkpoints
 
     def checkpoint(self) -> dict:

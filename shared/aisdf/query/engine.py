@@ -235,6 +235,15 @@ class QueryEngine:
             if cur.submaps is None or idx.epoch < cur.epoch:
                 return []
             subs = cur.submaps.submaps
+            # 1.11: a submap the mapper removed (left without keyframes by a pose correction) is
+            # not in an index at least as new as its snapshot: it goes
+            listed = {parse_cell_id(sid) for sid in idx.submaps}
+            gone = [c for c, h in subs.items() if c not in listed and h.version <= idx.version]
+            if gone and idx.epoch == cur.epoch:
+                subs = {c: h for c, h in subs.items() if c not in gone}
+                self._state = cur = self._submap_state(SubmapSet(cur.submaps.grid, subs), cur.version, cur.epoch,
+                                                       cur)
+                self.baker.map_arrived(cur)
             want = [sid for sid, v in idx.submaps.items()
                     if subs.get(parse_cell_id(sid)) is None or subs[parse_cell_id(sid)].version < v["version"]]
             if not want and idx.version > cur.version:

@@ -4,6 +4,8 @@ whether measured points go with them."""
 
 from __future__ import annotations
 
+from typing import Literal
+
 from pydantic import Field
 
 from ..config import Model
@@ -37,6 +39,12 @@ class SubmapConfig(Model):
                                           "it has this many unpublished steps ...")
     background_publish_periods: int = Field(10, ge=1, description="... or this many publications after its first "
                                             "unpublished step; submaps in view and new ones go out at once")
+    repose_networks: Literal["reset", "keep"] = Field("reset", description="after a pose correction (protocol "
+                                                      "1.11), a submap whose keyframes changed: reset = a fresh "
+                                                      "network trained on the corrected keyframes (the old surfaces "
+                                                      "go at once); keep = the old network trained on")
+    repose_steps: int = Field(30, ge=0, description="... and trained this many steps at once, before the corrected "
+                              "map is published")
     measured: bool = Field(True, description="pool the keyframes' depth pixels into 10 cm voxels and publish, with "
                            "each submap, the mean points of the voxels in its extended box (protocol 1.4: the query "
                            "service's fused answers use them; docs/experiments/scaling-notes.md, The measured surface)")

@@ -357,6 +357,14 @@ class SubmapPipeline:
         and the surfel map."""
         return self.publisher.map_messages(version, changed_only, epoch, mark)
 
+    # ------------------------------------------------------------------ pose corrections
+    def repose(self, corrections: dict) -> dict:
+        """New poses for stored keyframes, ``{(sensor, frame_id): T_WC}`` (protocol 1.11):
+        ``aisdf.mapper.repose.repose_submaps``. ValueError (nothing changed) for a bad one."""
+        from ..mapper.repose import repose_submaps
+
+        return repose_submaps(self, corrections).as_dict()
+
     # ------------------------------------------------------------------ checkpoints
     def checkpoint(self) -> dict:
         return persist.checkpoint(self)

@@ -1,0 +1,294 @@
+"""Pose corrections (protocol 1.11): keyframes already in the map get a new camera-to-world
+pose (a SLAM system's loop closure), and what the map derived from their old pose follows.
+
+For a batch ``{(sensor, frame_id): T_WC}`` (``aisdf.mapper.Mapper.repose``), both mappers:
+
+1. Each stored keyframe named gets its new ``T_WC`` (the one ``Frame`` every submap's view
+   shares, so training samples its rays from the new pose at once); its surfels (world
+   coordinates, fitted on arrival) are moved rigidly with it. Keys the map does not hold
+   (never sent, not stored because they added nothing new, evicted) are reported
+   ``unknown`` and change nothing; a pose equal to the held one is ``unchanged``.
+2. The intake's knowledge is rebuilt from the stored keyframes, in arrival order, as it
+   was built: the observed space, the measured points, the keyframes' coverage (the
+   redundancy and eviction test) and the box (which only grows). A map built with the
+   right poses from the start has the same observed voxels and, bit for bit, the same
+   measured points. What evicted keyframes (or those the one network's store dropped)
+   added to the observed space and the measured points is lost: their poses cannot be
+   corrected, so what they gave is not kept at a place that may be wrong.
+3. The global surfel map is merged again from the stored keyframes' surfels (the surfels
+   of evicted keyframes are lost with them). The Atlanta frame is kept: its directions come
+   from many keyframes' normals and a correction rotates a few by little.
+4. Networks. The submap mapper gives each corrected keyframe to the submaps it observes
+   under its new pose (the rule of ``SubmapPipeline._assign``, with new pixel masks), takes
+   it out of those it no longer observes, and keeps every store in arrival order. A submap
+   whose keyframes changed learnt the old surface where the keyframe no longer puts it, and
+   a network forgets a surface only where new rays pass; so by default (``submap.repose_networks:
+   reset``) its network starts again (a fresh network with its seed and centre, new AdamW
+   state) and is trained ``submap.repose_steps`` steps on its corrected keyframes at once,
+   before the map is published; ``keep`` trains the old network on as it is (the old
+   surfaces fade only where new rays pass). A submap left with no keyframe is removed from
+   the mapper's map (a query service keeps the snapshot it holds: docs/protocol.md).
+   The one-network mapper keeps its network and trains it ``SINGLE_STEPS`` steps at once.
+
+Every changed submap is published with the next map (``published_step`` reset), the
+measured points and observed space of every submap with it. Costs are timed per part
+(``timings_ms`` of the result; the mapper service logs them).
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+
+from ..codec import is_rigid
+from ..observed import ObservedSpace
+from ..structure.measured import MeasuredSurface
+from ..structure.surfel_types import Surfels
+from .coverage import KeyframeCoverage
+from .intake import grow_bounds
+
+SINGLE_STEPS = 20  # the one-network mapper: training steps taken at once after a correction
+SAME_POSE_ATOL = 1e-9  # a pose within this (every matrix entry) of the held one is unchanged
+
+Key = tuple[str, int]
+
+
+@dataclass
+class ReposeResult:
+    """What a correction batch did: keys moved, keys the map does not hold, keys already at
+    their pose, submaps whose keyframes changed, and the time of each part (ms)."""
+
+    reposed: list[Key] = field(default_factory=list)
+    unknown: list[Key] = field(default_factory=list)
+    unchanged: list[Key] = field(default_factory=list)
+    submaps: list[str] = field(default_factory=list)
+    removed: list[str] = field(default_factory=list)  # submaps left with no keyframe
+    timings_ms: dict[str, float] = field(default_factory=dict)
+
+    def as_dict(self) -> dict:
+        return {"reposed": len(self.reposed), "unknown": [list(k) for k in self.unknown],
+                "unchanged": len(self.unchanged), "submaps": list(self.submaps),
+                "removed": list(self.removed),
+                "timings_ms": {k: round(v, 2) for k, v in self.timings_ms.items()}}
+
+
+def check_corrections(corrections: dict) -> dict[Key, np.ndarray]:
+    """``{(sensor, frame_id): (4, 4) rigid}`` as float64 copies; ValueError (nothing changed)
+    for a key or a pose that is not one."""
+    out = {}
+    for key, T in corrections.items():
+        if not (isinstance(key, tuple) and len(key) == 2 and isinstance(key[0], str)
+                and isinstance(key[1], (int, np.integer)) and not isinstance(key[1], bool)):
+            raise ValueError(f"a correction's key must be (sensor, frame_id), got {key!r}")
+        T = np.array(T, np.float64)
+        if T.shape != (4, 4) or not is_rigid(T):
+            raise ValueError(f"the pose of {key[0]}/{int(key[1])} is not a rigid 4x4 camera-to-world transform")
+        out[(key[0], int(key[1]))] = T
+    return out
+
+
+def move_surfels(s: Surfels | None, delta: np.ndarray) -> Surfels | None:
+    """The surfels moved by the rigid ``delta`` (world to world)."""
+    if s is None or not len(s):
+        return s
+    R, t = delta[:3, :3], delta[:3, 3]
+    return replace(s, center=s.center @ R.T + t, normal=s.normal @ R.T, axis1=s.axis1 @ R.T, axis2=s.axis2 @ R.T)
+
+
+def set_poses(frames: dict, corrections: dict[Key, np.ndarray], result: ReposeResult) -> None:
+    """New poses on the held frames (``frames``: key -> an object with ``.frame``, or a Frame)."""
+    for key, T in corrections.items():
+        held = frames.get(key)
+        if held is None:
+            result.unknown.append(key)
+            continue
+        f = getattr(held, "frame", held)
+        old = np.asarray(f.T_WC, np.float64)
+        if np.allclose(old, T, rtol=0.0, atol=SAME_POSE_ATOL):
+            result.unchanged.append(key)
+            continue
+        f.surfels = move_surfels(f.surfels, T @ np.linalg.inv(old))
+        f.T_WC = T.copy()
+        result.reposed.append(key)
+
+
+def rebuild_knowledge(intake, frames: list, timings: dict[str, float]) -> None:
+    """The intake's observed space, measured points, coverage and box from ``frames``
+    (stored ``Frame``s, arrival order), and the structure's global surfel map from their
+    surfels (module docstring, 2-3)."""
+    t = time.perf_counter()
+    old = intake.observed
+    observed = ObservedSpace(old.voxel, old.margin, old.max_rays)
+    for f in frames:
+        observed.add(f.metres(), f.K, f.T_WC, intake.max_depth)
+    intake.observed = observed
+    timings["observed"] = 1e3 * (time.perf_counter() - t)
+    if intake.measured is not None:
+        t = time.perf_counter()
+        m = intake.measured
+        measured = MeasuredSurface(m.voxel, m.min_hits, m.max_depth)
+        for f in frames:
+            measured.add(f.metres(), f.K, f.T_WC)
+        intake.measured = measured
+        timings["measured"] = 1e3 * (time.perf_counter() - t)
+    t = time.perf_counter()
+    coverage = KeyframeCoverage(intake.coverage.policy, intake.coverage.max_depth)
+    bounds = intake.bounds
+    for f in frames:
+        coverage.add(f.key, f)
+        bounds = grow_bounds(bounds, replace(f, depth=f.metres()), intake.max_depth)
+    intake.coverage, intake.bounds = coverage, bounds
+    timings["coverage"] = 1e3 * (time.perf_counter() - t)
+    if intake.structure is not None:
+        t = time.perf_counter()
+        st = intake.structure
+        old_map = st.map
+        st.map = type(old_map)(old_map.config)
+        for f in frames:
+            if f.surfels is not None and len(f.surfels):
+                st.map.add(f.surfels)
+        st.map.n_produced = old_map.n_produced
+        st._aligned = None  # the realigned copy of the old map
+        timings["surfels"] = 1e3 * (time.perf_counter() - t)
+
+
+# ----------------------------------------------------------------------------- one network
+
+
+def repose_single(pipe, corrections: dict, steps: int = SINGLE_STEPS) -> ReposeResult:
+    """``MappingPipeline.repose``: module docstring; the network is kept and trained
+    ``steps`` steps at once when any keyframe moved."""
+    corr = check_corrections(corrections)
+    res = ReposeResult()
+    t0 = time.perf_counter()
+    set_poses({sf.frame.key: sf for sf in pipe.trainer.store.keyframes}, corr, res)
+    res.timings_ms["poses"] = 1e3 * (time.perf_counter() - t0)
+    if res.reposed:
+        rebuild_knowledge(pipe.intake, [sf.frame for sf in pipe.trainer.store.keyframes], res.timings_ms)
+        t = time.perf_counter()
+        for _ in range(steps):
+            pipe.step()
+        res.timings_ms["train"] = 1e3 * (time.perf_counter() - t)
+    res.timings_ms["total"] = 1e3 * (time.perf_counter() - t0)
+    return res
+
+
+# ----------------------------------------------------------------------------- submaps
+
+
+def cells_seen(pipe, kf) -> dict:
+    """The cells a stored keyframe joins, with their ray-point counts (``_assign``'s rule)."""
+    s = pipe.sub_cfg
+    pts, _ = pipe._ray_points(kf)
+    counts = pipe.grid.cells_touching(pts)
+    need = max(s.min_points, s.min_share * len(pts))
+    seen = {c: n for c, n in counts.items() if n >= need}
+    if not seen and counts:
+        c = max(counts, key=counts.get)
+        seen = {c: counts[c]}
+    return seen
+
+
+def _insert_ordered(items: list, item, rank: dict, key) -> None:
+    """Insert ``item`` into ``items`` (kept in ``rank`` order of ``key(x)``)."""
+    r = rank[key(item)]
+    i = 0
+    while i < len(items) and rank.get(key(items[i]), -1) < r:
+        i += 1
+    items.insert(i, item)
+
+
+def reset_network(pipe, sm) -> None:
+    """A fresh network for the submap (its configuration: seed and encoding centre), new
+    AdamW state and step count, the same keyframe store."""
+    from ..mapping.trainer import Trainer
+
+    old = sm.trainer
+    tr = Trainer(old.cfg)
+    pipe._attach_prior(sm.cell, tr)
+    tr.store = old.store
+    sm.trainer = tr
+
+
+def repose_submaps(pipe, corrections: dict) -> ReposeResult:
+    """``SubmapPipeline.repose``: module docstring."""
+    corr = check_corrections(corrections)
+    res = ReposeResult()
+    t0 = time.perf_counter()
+    touched = []  # ray points of the keyframes to move, at their old pose and their new one
+    if pipe.grid is not None:
+        touched = [pipe._ray_points(pipe.frames[k])[0] for k in corr if k in pipe.frames]
+    set_poses(pipe.frames, corr, res)
+    res.timings_ms["poses"] = 1e3 * (time.perf_counter() - t0)
+    if not res.reposed:
+        res.timings_ms["total"] = 1e3 * (time.perf_counter() - t0)
+        return res
+    rebuild_knowledge(pipe.intake, [sf.frame for sf in pipe.frames.values()], res.timings_ms)
+    changed: set = set()
+    if pipe.grid is not None:
+        t = time.perf_counter()
+        rank = {k: i for i, k in enumerate(pipe.frames)}
+        waiting = {sf.frame.key for sf in pipe._waiting}
+        for key in res.reposed:
+            if key in waiting:
+                continue
+            kf = pipe.frames[key]
+            losses = {}
+            for c, sm in pipe.submaps.items():
+                if key in sm.seen_by:
+                    old = [v for v in sm.trainer.store.keyframes if v.frame.key == key]
+                    losses[c] = old[0].loss if old else None
+                    sm.trainer.remove_keyframe(key)
+                    sm.seen_by.remove(key)
+                    changed.add(c)
+            for c in cells_seen(pipe, kf):
+                sm = pipe.submaps.get(c) or pipe._new_submap(c)
+                view = kf.view(pipe._pixel_mask(kf, c), pipe._region(c))
+                view.loss = losses.get(c)
+                store = sm.trainer.store
+                store.add_prepared(view)
+                held = [i for i, v in enumerate(store.keyframes) if v is view]
+                if held:  # back to its place in arrival order (unless the store's bound dropped it)
+                    del store.keyframes[held[0]]
+                    _insert_ordered(store.keyframes, view, rank, lambda v: v.frame.key)
+                _insert_ordered(sm.seen_by, key, rank, lambda k: k)
+                changed.add(c)
+        res.timings_ms["assign"] = 1e3 * (time.perf_counter() - t)
+        t = time.perf_counter()
+        s = pipe.sub_cfg
+        for c in sorted(changed):
+            sm = pipe.submaps[c]
+            if not len(sm.trainer.store):
+                _remove_submap(pipe, c)
+                res.removed.append(sm.id)
+                continue
+            if s.repose_networks == "reset":
+                reset_network(pipe, sm)
+            sm.published_step = -1  # published with the next map, whatever its steps
+            for _ in range(s.repose_steps):
+                sm.trainer.step()
+        res.timings_ms["train"] = 1e3 * (time.perf_counter() - t)
+    if pipe.grid is not None:  # submaps whose observed space or measured points moved: published again
+        touched += [pipe._ray_points(pipe.frames[k])[0] for k in res.reposed]
+        pts = np.concatenate(touched)
+        grow = pipe.grid.overlap_m + pipe.observed.voxel + pipe.cfg.trunc_distance
+        for c, sm in pipe.submaps.items():
+            if c in changed or pipe.grid.inside(c, pts, grow=grow).any():
+                sm.published_step = -1
+    for sm in pipe.submaps.values():  # observed messages are built again from the rebuilt space
+        sm.observed_key = ()
+    pipe.publisher._measured_key = None
+    from ..submaps.grid import cell_id
+
+    res.submaps = [cell_id(c) for c in sorted(changed) if c in pipe.submaps]
+    res.timings_ms["total"] = 1e3 * (time.perf_counter() - t0)
+    return res
+
+
+def _remove_submap(pipe, c) -> None:
+    del pipe.submaps[c]
+    pipe._credit.pop(c, None)
+    pipe._recent = [{k: n for k, n in seen.items() if k != c} for seen in pipe._recent]
+    pipe._recent = [seen for seen in pipe._recent if seen]

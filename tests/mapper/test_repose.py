@@ -1,0 +1,116 @@
+"""Pose corrections (protocol 1.11) in both mappers: keyframes sent with a wrong pose, then
+corrected, give the map that the right poses give from the start (measured points bit for bit,
+observed space, coverage, the submaps' keyframes); a bad correction changes nothing; a
+checkpoint keeps the corrected poses."""
+
+import numpy as np
+import pytest
+import torch
+
+from aisdf import protocol
+from aisdf.keyframes import keyframe_message
+from aisdf.mapper.coverage import KeyframePolicy
+from aisdf.mapper.factory import make_mapper, restore_mapper
+from aisdf.synthetic import SyntheticSequence
+
+torch.set_num_threads(1)
+SMALL = {"network": {"width": 16}, "n_rays": 10}
+FRAMES = list(range(0, 120, 8))
+WRONG = (48, 56)  # sent with a wrong pose, then corrected
+# every keyframe is stored; a keyframe's rays never retire what others measured (a wrongly placed
+# keyframe would retire it for good: no correction brings it back)
+POLICY = {"skip_redundant": False, **({"clear_free_space": False}
+                                      if "clear_free_space" in KeyframePolicy.model_fields else {})}
+
+
+@pytest.fixture(scope="module")
+def seq():
+    return SyntheticSequence(building="atlanta", n_frames=120, H=45, W=60, seed=1)
+
+
+def wrong(T):
+    """The pose 1.2 m off and turned 10 degrees about the vertical (a drifted odometry)."""
+    a = np.radians(10.0)
+    D = np.eye(4)
+    D[:3, :3] = [[np.cos(a), -np.sin(a), 0], [np.sin(a), np.cos(a), 0], [0, 0, 1]]
+    D[:3, 3] = [1.2, -0.6, 0.0]
+    return D @ T
+
+
+def build(seq, kind, wrong_ids=()):
+    p = make_mapper(kind, "cpu", SMALL, keyframes=POLICY, submaps={"repose_steps": 3, "cell_m": 3.0})
+    for i in FRAMES:
+        msg = keyframe_message(seq.frame(i))
+        if i in wrong_ids:
+            msg.T_WC = wrong(msg.T_WC)
+        p.add_keyframe(msg)
+        p.step()
+    return p
+
+
+def corrections(seq):
+    return {("depth", i): keyframe_message(seq.frame(i)).T_WC for i in WRONG}
+
+
+def assert_same_knowledge(a, b):
+    np.testing.assert_array_equal(a.measured.keys, b.measured.keys)
+    np.testing.assert_array_equal(a.measured.sums, b.measured.sums)  # bit for bit
+    np.testing.assert_array_equal(a.measured.counts, b.measured.counts)
+    np.testing.assert_array_equal(a.measured_points(), b.measured_points())
+    np.testing.assert_array_equal(a.observed.keys, b.observed.keys)
+    np.testing.assert_array_equal(a.intake.coverage.keys, b.intake.coverage.keys)
+    np.testing.assert_array_equal(a.intake.coverage.counts, b.intake.coverage.counts)
+
+
+@pytest.mark.parametrize("kind", ["submaps", "single"])
+def test_a_correction_gives_the_map_of_the_right_poses(seq, kind):
+    right = build(seq, kind)
+    p = build(seq, kind, WRONG)
+    assert not np.array_equal(p.measured.keys, right.measured.keys)  # the wrong poses show
+    rep = p.repose({**corrections(seq), ("depth", 999): np.eye(4), ("depth", 8): seq.frame(8)["T_WC"]})
+    assert rep["reposed"] == 2 and rep["unknown"] == [["depth", 999]] and rep["unchanged"] == 1
+    assert_same_knowledge(right, p)
+    held = {f.key: f for f in (p.keyframes if kind == "submaps" else p.trainer.keyframes)}
+    for i in WRONG:
+        np.testing.assert_array_equal(held[("depth", i)].T_WC, seq.frame(i)["T_WC"])
+    if kind == "submaps":
+        assert set(p.submaps) == set(right.submaps)
+        for c, sm in right.submaps.items():  # the same keyframes, in arrival order, with the same pixels
+            got = p.submaps[c]
+            assert got.seen_by == sm.seen_by
+            assert [v.frame.key for v in got.trainer.store.keyframes] == [v.frame.key for v in sm.trainer.store.keyframes]
+            for v, w in zip(got.trainer.store.keyframes, sm.trainer.store.keyframes):
+                np.testing.assert_array_equal(v.pixel_mask, w.pixel_mask)
+        assert rep["submaps"] and all(p.submaps[c].published_step == -1 for c in p.submaps
+                                      if p.submaps[c].id in rep["submaps"])
+        # the retrained submaps are published with the next map, their points where the right poses put them
+        msgs = dict(p.map_messages(99))
+        assert all(f"map/submaps/{sid}" in msgs for sid in rep["submaps"])
+        index = protocol.SubmapIndex.from_msg(protocol.unpack(msgs["map/index"]))
+        assert rep["removed"] and not set(rep["removed"]) & set(index.submaps)  # the wrong poses' submap is gone
+        assert set(index.submaps) == {sm.id for sm in right.submaps.values()}
+    for _ in range(3):
+        p.step()
+    # the surfels moved with their keyframes: none is left where only the wrong poses put one
+    s = p.surfels()
+    assert s is not None and len(s)
+    back = restore_mapper(p.checkpoint())  # the checkpoint holds the corrected poses
+    held = {f.key: f for f in (back.keyframes if kind == "submaps" else back.trainer.keyframes)}
+    np.testing.assert_array_equal(held[("depth", WRONG[0])].T_WC, seq.frame(WRONG[0])["T_WC"])
+    np.testing.assert_array_equal(back.measured.points(), right.measured.points())
+
+
+@pytest.mark.parametrize("kind", ["submaps", "single"])
+def test_a_bad_correction_changes_nothing(seq, kind):
+    p = build(seq, kind, WRONG)
+    before = (p.measured.sums.copy(), p.observed.keys.copy(), p.steps)
+    bad = {("depth", 48): np.diag([2.0, 1.0, 1.0, 1.0]), ("depth", 56): seq.frame(56)["T_WC"]}
+    with pytest.raises(ValueError, match="not a rigid"):
+        p.repose(bad)
+    with pytest.raises(ValueError, match="sensor, frame_id"):
+        p.repose({48: np.eye(4)})
+    held = {f.key: f for f in (p.keyframes if kind == "submaps" else p.trainer.keyframes)}
+    np.testing.assert_array_equal(held[("depth", 56)].T_WC, wrong(seq.frame(56)["T_WC"]))
+    np.testing.assert_array_equal(p.measured.sums, before[0])
+    np.testing.assert_array_equal(p.observed.keys, before[1])
+    assert p.steps == before[2]
