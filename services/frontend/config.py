@@ -44,6 +44,15 @@ class Ros2SourceConfig(Model):
     tf_check: bool = Field(True, description="check the TF chain on the first frames (held meanwhile); refuse the "
                            "robot's frames in words when it fails (aisdf.ros.check)")
     tf_check_window: int = Field(90, ge=2, description="frames held and checked before mapping starts")
+    odom_frame: str | None = Field(None, description="protocol 1.11: the odometry frame between fixed_frame and the "
+                                   "camera; when map -> odom moves (a SLAM loop closure), the keyframes sent are "
+                                   "re-posed in the map (aisdf.ros.follow; None: not followed)")
+    follow_mode: Literal["stamp", "latest"] = Field("stamp", description="map -> odom at each keyframe's stamp "
+                                                    "(stamp) or the newest one for every keyframe (latest)")
+    follow_keyframes: int = Field(5000, ge=1, description="the newest this many keyframes sent are followed")
+    follow_min_m: float = Field(0.01, ge=0, description="a keyframe is re-posed when its map -> odom moved more "
+                                "than this (m) ...")
+    follow_min_deg: float = Field(0.5, ge=0, description="... or turned more than this (degrees)")
 
 
 class RosbagSourceConfig(Model):

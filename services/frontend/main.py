@@ -33,14 +33,15 @@ def to_keyframe(frame: dict, cfg: FrontendConfig) -> protocol.Keyframe:
 INFO_KEY = "info/frontend"
 
 
-def stream(cfg: FrontendConfig, publish, stop: threading.Event, counts: dict | None = None) -> dict:
+def stream(cfg: FrontendConfig, publish, stop: threading.Event, counts: dict | None = None, correct=None) -> dict:
     """Stream the source through keyframe selection into ``publish(msg)``; returns counts
-    (``counts``, updated live, when given)."""
+    (``counts``, updated live, when given). ``correct({frame_id: T_WC})``: where a live source
+    follows map -> odom (``ros2.odom_frame``), the corrected poses of keyframes sent (1.11)."""
     src = open_source(cfg)
     selector = KeyframeSelector(cfg.keyframes)
     counts = counts if counts is not None else {}
     if getattr(src, "live", False):
-        return stream_live(cfg, src, selector, publish, stop, counts)
+        return stream_live(cfg, src, selector, publish, stop, counts, correct)
     counts.update(frames=0, keyframes=0, total=len(src))
     if hasattr(src, "counts"):  # a recording: its images that could not be placed, by reason
         counts["source"] = src.counts
@@ -70,12 +71,13 @@ def stream(cfg: FrontendConfig, publish, stop: threading.Event, counts: dict | N
 
 
 def stream_live(cfg: FrontendConfig, src, selector: KeyframeSelector, publish, stop: threading.Event,
-                counts: dict) -> dict:
+                counts: dict, correct=None) -> dict:
     """A live source (``src.live``, e.g. ``ros2``): frames are pushed as the source assembles
     them, keyframes selected as for any source; it ends on ``stop`` (SIGINT/SIGTERM), when the
     source ends (its idle timeout) or after ``max_frames``. ``counts["source"]`` mirrors the
     source's own counters (images, skipped frames by reason, malformed messages)."""
     counts.update(frames=0, keyframes=0, total=None, source=src.counts)
+    follower = getattr(src, "follower", None)  # map -> odom corrections (protocol 1.11)
     frames = src.frames(stop)
     try:
         for frame in frames:
@@ -84,6 +86,12 @@ def stream_live(cfg: FrontendConfig, src, selector: KeyframeSelector, publish, s
                 publish(to_keyframe(frame, cfg).to_msg())
                 counts["keyframes"] += 1
                 log.debug("keyframe %d (%s)", frame["frame_id"], selector.last_reason)
+                if follower is not None:
+                    follower.track(frame["frame_id"], round(float(frame["stamp"]) * 1e9), frame["T_WC"])
+            if follower is not None and correct is not None:
+                moved = follower.poll()
+                if moved:
+                    correct(moved)
             counts["source"] = src.counts
             if cfg.max_frames and counts["frames"] >= cfg.max_frames:
                 break
@@ -193,8 +201,14 @@ def main(cfg: FrontendConfig, stop: threading.Event | None = None) -> dict:
                                lambda _req: {"v": 1, **counts, **(sender.counts() if sender else {})}, allow_empty=True)
         log.info("frontend streaming %s to %s", cfg.source if cfg.source != "synthetic" else
                  f"synthetic '{cfg.building}'", key)
+        fixer = None
+        if cfg.source == "ros2" and cfg.ros2.odom_frame:  # protocol 1.11: map -> odom corrections
+            from aisdf.ros.follow import CorrectionSender
+
+            fixer = CorrectionSender(session, cfg.namespace, cfg.sensor)
         try:
-            stream(cfg, sender.add if sender else (lambda msg: transport.put(session, key, msg)), stop, counts)
+            stream(cfg, sender.add if sender else (lambda msg: transport.put(session, key, msg)), stop, counts,
+                   None if fixer is None else fixer.submit)
             if sender and not cfg.linger:  # lingering, the sender keeps resending until stopped
                 log.info("source done: %d frames, %d keyframes; waiting up to %.0f s for %d acknowledgements",
                          counts["frames"], counts["keyframes"], cfg.drain_timeout_s, sender.outbox.pending)
@@ -209,6 +223,8 @@ def main(cfg: FrontendConfig, stop: threading.Event | None = None) -> dict:
             if cfg.linger:
                 stop.wait()
         finally:
+            if fixer is not None:
+                fixer.close()
             if sender:
                 sender.close()
             info.undeclare()

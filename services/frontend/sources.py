@@ -37,7 +37,9 @@ def _ros2(cfg: FrontendConfig):
                       depth_type=r.depth_type, domain_id=r.domain_id, distro=r.distro, connect=r.connect,
                       zenoh_config=str(r.zenoh_config) if r.zenoh_config else None, node_name=r.node_name,
                       idle_timeout_s=r.idle_timeout_s, max_wait_s=r.max_wait_s, tf_check=r.tf_check,
-                      tf_check_window=r.tf_check_window)
+                      tf_check_window=r.tf_check_window, odom_frame=r.odom_frame, follow_mode=r.follow_mode,
+                      follow_keyframes=r.follow_keyframes, follow_min_m=r.follow_min_m,
+                      follow_min_deg=r.follow_min_deg)
 
 
 def open_rosbag(cfg: FrontendConfig):

@@ -26,6 +26,7 @@ from typing import Iterator
 
 from . import rmw_zenoh as rz
 from .assemble import FrameAssembler
+from .follow import MapOdomFollower
 
 log = logging.getLogger("aisdf.ros.live")
 
@@ -44,7 +45,8 @@ class Ros2Source:
                  connect: list[str] | None = None, zenoh_config: str | None = None,
                  node_name: str = "aisdf_frontend", node_namespace: str = "/", idle_timeout_s: float | None = None,
                  max_wait_s: float = 1.0, queue_max: int = 2000, tf_check: bool = True, tf_check_window: int = 90,
-                 session=None):
+                 session=None, odom_frame: str | None = None, follow_mode: str = "stamp",
+                 follow_keyframes: int = 5000, follow_min_m: float = 0.01, follow_min_deg: float = 0.5):
         if depth_type not in DEPTH_TYPES:
             raise ValueError(f"depth_type {depth_type!r}: choose one of {sorted(DEPTH_TYPES)}")
         self.depth_topic = rz.qualify(depth_topic)
@@ -57,6 +59,10 @@ class Ros2Source:
         self.assembler = FrameAssembler(self.depth_topic, self.info_topic, fixed_frame, camera_frame=camera_frame,
                                         tf_topics=(self.tf_topic,), static_tf_topics=(self.tf_static_topic,),
                                         max_wait_s=max_wait_s)
+        # protocol 1.11: with an odom frame, the keyframes sent follow map -> odom corrections (follow.py)
+        self.follower = None if not odom_frame else MapOdomFollower(
+            self.assembler.tf, fixed_frame, odom_frame, mode=follow_mode, max_keyframes=follow_keyframes,
+            min_m=follow_min_m, min_deg=follow_min_deg)
         self._queue: queue.Queue = queue.Queue(maxsize=queue_max)
         self.dropped = 0  # messages lost because the frame loop fell behind by queue_max
         self._own_session = session is None
@@ -94,6 +100,7 @@ class Ros2Source:
         subs = {name: {"received": s.counts.received, "malformed": s.counts.malformed}
                 for name, s in getattr(self, "subs", {}).items()}
         return {**self.assembler.counts, "queue_dropped": self.dropped, "topics": subs,
+                **({"follow": dict(self.follower.counts)} if self.follower is not None else {}),
                 "tf_check": None if self.tf_verdict is None else str(self.tf_verdict)}
 
     def frames(self, stop: threading.Event, max_frames: int | None = None) -> Iterator[dict]:
