@@ -78,6 +78,12 @@ class FrontendConfig(ServiceConfig):
     source: str = Field("synthetic", description="synthetic, or a dataset kind (generic, 7scenes, tum, ...)")
     path: Path | None = Field(None, description="dataset folder, or the recording for rosbag (not for synthetic)")
     building: str = Field("office", description="synthetic building: office, manhattan, atlanta, stairs, floor (a multi-room floor), ...")
+    change: Literal["cart", "person", "drift"] | None = Field(
+        None, description="synthetic: a changing scene (aisdf.synthetic.changes): cart (a cart seen on a first pass "
+        "of the walk, gone on the second), person (someone crossing the view), drift (poses drifting to 20 cm); "
+        "n_frames is then one pass")
+    change_pause_s: float = Field(10.0, ge=0, description="with change=cart or person: the pause between the "
+                                  "walk's two passes (s)")
     seed: int = Field(0, description="synthetic building, trajectory and noise seed")
     n_frames: int = Field(900, ge=1, description="synthetic sequence length (frames)")
     width: int = Field(160, ge=8, description="synthetic image width")

@@ -200,7 +200,7 @@ def main(cfg: FrontendConfig, stop: threading.Event | None = None) -> dict:
         info = transport.serve(session, keys.key(cfg.namespace, INFO_KEY),
                                lambda _req: {"v": 1, **counts, **(sender.counts() if sender else {})}, allow_empty=True)
         log.info("frontend streaming %s to %s", cfg.source if cfg.source != "synthetic" else
-                 f"synthetic '{cfg.building}'", key)
+                 f"synthetic '{cfg.building}'" + (f" ({cfg.change})" if cfg.change else ""), key)
         fixer = None
         if cfg.source == "ros2" and cfg.ros2.odom_frame:  # protocol 1.11: map -> odom corrections
             from aisdf.ros.follow import CorrectionSender

@@ -15,6 +15,11 @@ from .config import FrontendConfig
 def _synthetic(cfg: FrontendConfig):
     from aisdf.synthetic import SyntheticSequence
 
+    if cfg.change:
+        from aisdf.synthetic.changes import ChangingSequence
+
+        return ChangingSequence(building=cfg.building, change=cfg.change, n_frames=cfg.n_frames, H=cfg.height,
+                                W=cfg.width, fps=cfg.fps, noise=cfg.noise, seed=cfg.seed, pause_s=cfg.change_pause_s)
     return SyntheticSequence(building=cfg.building, n_frames=cfg.n_frames, H=cfg.height, W=cfg.width,
                              fps=cfg.fps, noise=cfg.noise, seed=cfg.seed)
 

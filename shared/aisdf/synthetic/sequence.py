@@ -62,8 +62,13 @@ class SyntheticSequence:
         if not 0 <= i < len(self):
             raise IndexError(f"frame {i} out of range [0, {len(self)})")
         T_WC = self.poses[i]
-        depth = render_depth(self.scene, T_WC, self.K, self.H, self.W, self.noise, (self.seed, i))
+        depth = render_depth(self.scene_at(i), T_WC, self.K, self.H, self.W, self.noise, (self.seed, i))
         return dict(frame_id=i, stamp=i / self.fps, depth=depth, K=self.K.copy(), T_WC=T_WC.copy())
+
+    def scene_at(self, i: int):
+        """The scene frame ``i`` is rendered from (the same for every frame here; a changing
+        scene, ``changes.ChangingSequence``, answers per frame)."""
+        return self.scene
 
     def __getitem__(self, i: int) -> dict:
         return self.frame(i)
