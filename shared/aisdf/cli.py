@@ -53,6 +53,8 @@ TOOLS = [
     ("rosbag", "aisdf.bench.rosbag", "7-Scenes frames mapped from .mcap, .db3 and ROS 1 recordings against the folder"),
     ("ros2-live", "aisdf.bench.ros2_live", "the live ROS 2 source against the protocol-v1 frontend, real processes"),
     ("parked", "aisdf.bench.parked", "a parked robot's keyframes and memory, and a walk's keyframes, in-process"),
+    ("change", "aisdf.bench.change", "a cart moved away, a person crossing, drifting poses corrected, a parked "
+     "robot: what the served map says, real processes"),
     ("ros2-out", "aisdf.bench.ros2_out", "what aisdf ros2 publishes (occupancy grid) while a building is walked"),
     ("device", "aisdf.bench.device", "the query engine and both mappers on a GPU against the CPU"),
 ]
