@@ -52,6 +52,11 @@ class KeyframePolicy(Model):
     redundant_distance_m: float = Field(0.1, ge=0, description="... and a stored keyframe that sees the same space "
                                         "is within this distance ...")
     redundant_angle_deg: float = Field(10.0, ge=0, le=180, description="... and this rotation of its pose")
+    clear_free_space: bool = Field(True, description="a keyframe's rays retire the measured points, stored "
+                                   "keyframes' pixels and surfels they pass through (aisdf.mapper.clearing)")
+    clear_margin_m: float = Field(0.05, ge=0, description="... beyond the measured surface minus this margin ...")
+    clear_sigmas: float = Field(3.0, ge=0, description="... and this many depth-noise standard deviations "
+                                "(Kinect v1, Nguyen et al.: grows with the square of the range)")
     max_keyframes_total: int = Field(2000, ge=4, description="keyframes the submap mapper stores over the whole "
                                      "map; beyond, the one best covered by the others is evicted (what the map "
                                      "learnt from it stays)")

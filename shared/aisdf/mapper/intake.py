@@ -17,6 +17,7 @@ from .. import geometry, protocol
 from ..mapping.frames import Frame
 from ..observed import ObservedSpace
 from ..structure.measured import MeasuredSurface
+from . import clearing
 from .coverage import KeyframeCoverage, KeyframePolicy
 
 MIN_VALID_PIXELS = 64
@@ -80,14 +81,24 @@ class KeyframeIntake:
         self.bounds: np.ndarray | None = None
         self.observed = ObservedSpace()
         self.measured = MeasuredSurface(max_depth=max_depth) if measured else None
-        self.coverage = KeyframeCoverage(policy, max_depth)
+        self.policy = policy or KeyframePolicy()
+        self.coverage = KeyframeCoverage(self.policy, max_depth)
+        # what newer keyframes' rays passed through (clearing.py): measured voxels, stored
+        # keyframes' pixels (and how many keyframes lost some), global surfels
+        self.cleared = {"measured": 0, "pixels": 0, "keyframes": 0, "surfels": 0}
+        self.touched: list[tuple[str, int]] = []  # the last accepted keyframe's: stored keyframes it cleared pixels of
+        self.cleared_points = np.zeros((0, 3))  # ... and the measured points it removed
         self.redundant = 0  # keyframes acknowledged but not stored: they added nothing new
         self.timings: dict[str, list[float]] = defaultdict(list)
         self._pending: dict[str, float] = {}  # keyframe timings not yet reported with a step
 
-    def accept(self, kf: protocol.Keyframe | Frame, known: Callable[[tuple[str, int]], bool]) -> Frame | None:
-        """The keyframe's frame, after the structure has processed it; None for a keyframe
-        that adds nothing new (``coverage``: counted as ``redundant``, nothing else changes).
+    def accept(self, kf: protocol.Keyframe | Frame, known: Callable[[tuple[str, int]], bool],
+               stored: Callable[[tuple[str, int]], object] | None = None) -> Frame | None:
+        """The keyframe's frame, after its rays have cleared what they pass through
+        (``clearing``: measured points, the pixels of the stored keyframes ``stored(key)``
+        returns (a ``StoredFrame`` or None), surfels) and the structure has processed it;
+        None for a keyframe that adds nothing new and clears nothing (``coverage``: counted as
+        ``redundant``). Returns the keys of stored keyframes that lost pixels in ``.touched``.
         Raises ValueError (and changes nothing) for one that cannot be used: a mask of another
         shape, too few valid depth pixels, or a (sensor, frame_id) ``known`` says is in the map."""
         frame = frame_from_keyframe(kf) if isinstance(kf, protocol.Keyframe) else kf
@@ -96,8 +107,15 @@ class KeyframeIntake:
             raise ValueError(f"only {int(valid.sum())} valid depth pixels (need {MIN_VALID_PIXELS})")
         if known(frame.key):
             raise ValueError(f"keyframe {frame.sensor}/{frame.frame_id} is already in the map")
+        self.touched: list[tuple[str, int]] = []
+        self.cleared_points = np.zeros((0, 3))
+        news = 0
+        if self.policy.clear_free_space:
+            t = time.perf_counter()
+            news = self._clear(frame, stored)
+            self.timings["clearing"].append(1e3 * (time.perf_counter() - t))
         t = time.perf_counter()
-        redundant = self.coverage.is_redundant(frame)
+        redundant = not news and self.coverage.is_redundant(frame)
         self.timings["coverage"].append(1e3 * (time.perf_counter() - t))
         if redundant:
             self.redundant += 1
@@ -107,6 +125,34 @@ class KeyframeIntake:
                 self._pending[k] = self._pending.get(k, 0.0) + v
                 self.timings[k].append(v)
         return frame
+
+    def _clear(self, frame: Frame, stored) -> int:
+        """``clearing``'s three retirements for one new keyframe; returns 1 when they are news
+        (``clearing.NEWS_VOXELS``: the keyframe is then not redundant), else 0."""
+        p = self.policy
+        ev = clearing.FreeSpace(frame.depth, frame.K, frame.T_WC, self.max_depth, p.clear_margin_m, p.clear_sigmas)
+        keys, self.cleared_points, solid = clearing.clear_measured(self.measured, ev)
+        n_meas = len(keys)
+        if stored is not None and (n_meas or self.measured is None):
+            cands = (clearing.candidate_keyframes(self.coverage, keys) if self.measured is not None
+                     else list(self.coverage.views))
+            for key in cands:
+                sf = stored(key)
+                if sf is None:
+                    continue
+                n = clearing.clear_pixels(sf.raw, sf.scale, sf.frame.K, sf.frame.T_WC, ev)
+                if n:
+                    self.coverage.remove(key)
+                    self.coverage.add(key, sf.frame)
+                    self.cleared["pixels"] += n
+                    self.cleared["keyframes"] += 1
+                    self.touched.append(key)
+        n_surf = 0
+        if self.structure is not None and len(self.structure.map):
+            n_surf = self.structure.remove_surfels(clearing.surfels_passed(self.structure.map.surfels(), ev))
+        self.cleared["measured"] += n_meas
+        self.cleared["surfels"] += n_surf
+        return int(solid >= clearing.NEWS_VOXELS or n_surf > 0)
 
     def record(self, frame: Frame) -> None:
         """The stored keyframe's part in the box, the observed space, the measured points and
@@ -137,6 +183,7 @@ class KeyframeIntake:
         """Mean timings (ms) over recent values, and the structure's counters."""
         out = {k: round(float(np.mean(v)), 3) for k, v in self.timings.items() if v}
         out["redundant"] = self.redundant
+        out.update({f"cleared_{k}": v for k, v in self.cleared.items()})
         if self.structure is not None:
             out.update(self.structure.stats())
         return out

@@ -96,7 +96,11 @@ class MappingPipeline:
         """Add a keyframe: True when stored, False when it adds nothing new (not stored,
         counted as ``redundant``). Raises ValueError (and changes nothing) for one that cannot
         be used: a duplicate (sensor, frame_id), too few valid depth pixels, a bad mask."""
-        frame = self.intake.accept(kf, lambda key: key in {f.key for f in self.trainer.keyframes})
+        stored = {k.frame.key: k for k in self.trainer.store.keyframes}
+        frame = self.intake.accept(kf, stored.__contains__, stored.get)
+        for k in self.trainer.store.keyframes:  # a keyframe that lost pixels is replayed as new
+            if k.frame.key in self.intake.touched:
+                k.loss = None
         if frame is None:
             return False
         self.trainer.add_keyframe(frame)

@@ -50,6 +50,7 @@ class MeasuredSurface:
         self.counts = np.zeros(0, np.int64)
         self._points: MeasuredPoints | None = None
         self._msg: dict | None = None
+        self.version = 0  # counts changes (points added or removed)
 
     def __len__(self) -> int:
         return len(self.keys)
@@ -86,6 +87,20 @@ class MeasuredSurface:
         self.sums = np.insert(self.sums, i[fresh], add_s[fresh], axis=0)
         self.counts = np.insert(self.counts, i[fresh], add_c[fresh])
         self._points, self._msg = None, None
+        self.version += 1
+        return n
+
+    def remove(self, which: np.ndarray) -> int:
+        """Removes the voxels ``which`` selects (a boolean mask over ``keys``, or indices):
+        what newer keyframes saw as free space (``aisdf.mapper.clearing``). Returns how many."""
+        gone = np.zeros(len(self.keys), bool)
+        gone[which] = True
+        n = int(gone.sum())
+        if n:
+            keep = ~gone
+            self.keys, self.sums, self.counts = self.keys[keep], self.sums[keep], self.counts[keep]
+            self._points, self._msg = None, None
+            self.version += 1
         return n
 
     def points(self) -> np.ndarray:

@@ -50,6 +50,13 @@ class Structure:
         self.n_keyframes += 1
         return {"atlanta": 1e3 * (t1 - t0), "surfels": 1e3 * (t2 - t1)}
 
+    def remove_surfels(self, which: np.ndarray) -> int:
+        """Removes global surfels (a boolean mask over ``map``): seen through as free space."""
+        n = self.map.remove(which)
+        if n:
+            self._aligned = None
+        return n
+
     def atlanta_frame(self) -> AtlantaFrame | None:
         f = self.estimator.frame
         return f if f.valid else None

@@ -242,6 +242,16 @@ class GlobalSurfelMap:
             self._map = Surfels.concat([self._map, Surfels(**{f: row[f] for f in FIELDS})])
             self._covered = np.append(self._covered, row["covered"])
 
+    def remove(self, which: np.ndarray) -> int:
+        """Removes the surfels ``which`` selects (a boolean mask over the map): what newer
+        keyframes saw as free space (``aisdf.mapper.clearing``). Returns how many."""
+        which = np.asarray(which, bool)
+        n = int(which.sum())
+        if n:
+            keep = np.flatnonzero(~which)
+            self._map, self._covered = self._map[keep], self._covered[keep]
+        return n
+
     def realign(self, frame: AtlantaFrame) -> None:
         """Snap every surfel's normal (and axes) to the current Atlanta directions, about its centre."""
         realign(self._map, frame)

@@ -20,6 +20,7 @@ class Submap:
     observed_msg: dict | None = None
     seen_by: list = field(default_factory=list)  # keyframe keys, arrival order
     dirty_since: int | None = None  # publication count when its first unpublished step was seen
+    measured_changed: bool = False  # its measured points changed (cleared) since its last publication
 
     @property
     def id(self) -> str:

@@ -1,0 +1,191 @@
+"""Free space clears: what a newer depth ray passes through is gone.
+
+Every valid depth pixel of a keyframe says that the space along its ray, up to the measured
+surface, is free. Anything the map holds there (a cart that was moved away, a person who
+walked through the view) is contradicted by the newer keyframe and retired:
+
+* **measured points** (``MeasuredSurface``): the voxels whose mean point the new keyframe's
+  rays pass through are removed;
+* **stored keyframes' pixels**: a stored keyframe's pixel whose 3-d point the new keyframe's
+  rays pass through is set to no measurement (depth 0, in place: every submap's view of the
+  keyframe shares the array), so training stops replaying the surface that has gone, and
+  the networks learn the free space from the new rays;
+* **global surfels**: a surfel of which more than half of the points the new keyframe can
+  test are passed through is removed (the next keyframe that sees a surface there adds it
+  again); its points are sampled every 10 cm over its rectangle.
+
+The observed space is untouched: seen free is still seen.
+
+**The test.** A world point P at camera depth z projects to pixel (u, v); it is passed
+through when the keyframe measured, at that pixel, a surface farther than
+z + ``margin`` + ``sigmas`` x sigma(d), with sigma(d) = 0.0012 + 0.0019 (d - 0.4)^2 m
+(Nguyen et al. 2012, the Kinect v1 axial noise, the one the built-in scenes render with; it
+grows with the square of the range: 3 sigma is 5 mm at 1 m, 2.9 cm at 3 m, 7.7 cm at 4 m).
+The measured depth is the minimum over a window of pixels around (u, v) (2 pixels each side
+from 320 pixels wide, 1 below), and a window holding a pixel without depth tests nothing: at
+a depth edge, at grazing angles or next to a hole the nearer neighbour wins, so a surface
+that is still there is not cleared by a ray that only grazes it. ``margin`` (5 cm by
+default) covers the measured points' 10 cm voxel means, which sit off a curved or cornered
+surface by up to a few centimetres, and a few centimetres of pose error.
+
+Keyframes tested against the new one: those whose coverage voxels (``coverage``, the 10 cm
+voxels of their sampled pixels) include or neighbour a measured voxel the new keyframe
+cleared, so the cost follows what changed, not the number of keyframes; each is first
+tested on a sample of its pixels, then at full resolution when anything was cleared.
+
+A keyframe that clears a surface is never ``redundant`` (it brings news, even from the pose
+of a stored keyframe): at least ``NEWS_VOXELS`` measured voxels holding ``min_hits`` pixels,
+or a surfel. Clearing stray noisy pixels (voxels of one or two) is not news, so a parked
+robot's keyframes stay redundant. Off with ``keyframes.clear_free_space = false``.
+"""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+
+from .. import geometry
+from ..observed import pack_keys, unpack_keys
+
+SURFEL_SAMPLE_M = 0.1  # surfel points tested every this far over the rectangle
+SURFEL_MAX_SAMPLES = 400  # ... at most this many per surfel (a coarser spacing beyond)
+SURFEL_CLEAR_SHARE = 0.5  # a surfel goes when more than this share of its testable points is passed through
+SURFEL_MIN_CLEARED = 4  # ... and at least this many of them
+NEWS_VOXELS = 3  # a keyframe clearing this many measured voxels of surface (or a surfel) is news
+KEYFRAME_SAMPLE = 4  # stored keyframes are screened on every 4th pixel in both directions
+
+
+def depth_sigma(d: np.ndarray) -> np.ndarray:
+    """Kinect v1 axial noise standard deviation (m) at depth d (m), Nguyen et al. 2012."""
+    return 0.0012 + 0.0019 * (np.asarray(d, np.float64) - 0.4) ** 2
+
+
+class FreeSpace:
+    """One keyframe's evidence of free space (module docstring): ``passed(points)``."""
+
+    def __init__(self, depth: np.ndarray, K: np.ndarray, T_WC: np.ndarray, max_depth: float = 12.0,
+                 margin: float = 0.05, sigmas: float = 3.0):
+        depth = np.asarray(depth, np.float32)
+        d = np.where(geometry.valid_depth(depth, max_depth), depth, 0.0).astype(np.float32)
+        H, W = d.shape
+        r = 2 if W >= 320 else 1
+        # the minimum over the window; the border counts as far (erode's default), holes as 0
+        self.dmin = cv2.erode(d, np.ones((2 * r + 1, 2 * r + 1), np.uint8))
+        self.K = np.asarray(K, np.float64)
+        T = np.asarray(T_WC, np.float64)
+        self.R, self.t = T[:3, :3], T[:3, 3]
+        self.margin, self.sigmas = float(margin), float(sigmas)
+
+    def _lookup(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(z of each point in the camera, the window's minimum depth at its pixel; 0 = none)."""
+        P = (np.asarray(points, np.float64).reshape(-1, 3) - self.t) @ self.R
+        z = P[:, 2]
+        H, W = self.dmin.shape
+        d = np.zeros(len(P), np.float32)
+        front = z > 1e-3
+        with np.errstate(divide="ignore", invalid="ignore"):
+            u = np.rint(self.K[0, 0] * P[:, 0] / z + self.K[0, 2])
+            v = np.rint(self.K[1, 1] * P[:, 1] / z + self.K[1, 2])
+        inside = front & (u >= 0) & (u < W) & (v >= 0) & (v < H)
+        d[inside] = self.dmin[v[inside].astype(np.int64), u[inside].astype(np.int64)]
+        return z, d
+
+    def passed(self, points: np.ndarray) -> np.ndarray:
+        """(N,) bool: the keyframe's rays pass through the point, beyond the noise."""
+        z, d = self._lookup(points)
+        return (d > 0) & (d > z + self.margin + self.sigmas * depth_sigma(d))
+
+    def tested(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(passed, testable): testable points are in view with a depth in their window."""
+        z, d = self._lookup(points)
+        testable = (d > 0) & (z > 1e-3)
+        return testable & (d > z + self.margin + self.sigmas * depth_sigma(d)), testable
+
+
+def clear_measured(measured, evidence: FreeSpace) -> tuple[np.ndarray, np.ndarray, int]:
+    """Removes the measured voxels (any count) whose mean point ``evidence`` passes through;
+    returns their keys (sorted), their mean points and how many of them held at least
+    ``min_hits`` pixels (surface, not a stray noisy pixel)."""
+    if measured is None or not len(measured):
+        return np.zeros(0, np.int64), np.zeros((0, 3)), 0
+    pts = measured.sums / measured.counts[:, None]
+    gone = evidence.passed(pts)
+    if not gone.any():
+        return np.zeros(0, np.int64), np.zeros((0, 3)), 0
+    keys, pts = measured.keys[gone], pts[gone]
+    solid = int((measured.counts[gone] >= measured.min_hits).sum())
+    measured.remove(gone)
+    return keys, pts, solid
+
+
+def _neighbourhood(keys: np.ndarray) -> np.ndarray:
+    """The voxel keys and their 26 neighbours (sorted, unique)."""
+    ijk = unpack_keys(keys)
+    offs = np.stack(np.meshgrid([-1, 0, 1], [-1, 0, 1], [-1, 0, 1], indexing="ij"), -1).reshape(-1, 3)
+    return np.unique(pack_keys((ijk[:, None, :] + offs[None]).reshape(-1, 3)))
+
+
+def candidate_keyframes(coverage, cleared_keys: np.ndarray) -> list[tuple[str, int]]:
+    """Stored keyframes whose coverage voxels meet the cleared voxels or their neighbours."""
+    if not len(cleared_keys):
+        return []
+    near = _neighbourhood(cleared_keys)
+    return [key for key, (vox, _) in coverage.views.items() if len(vox) and np.isin(vox, near).any()]
+
+
+def clear_pixels(raw: np.ndarray, scale: float | None, K: np.ndarray, T_WC: np.ndarray,
+                 evidence: FreeSpace) -> int:
+    """Sets to 0 (in place) the pixels of a stored keyframe's depth (``raw``; metres =
+    raw / ``scale``, or metres when ``scale`` is None) whose 3-d point ``evidence`` passes
+    through; returns how many. Screened on a sample of the pixels first."""
+    H, W = raw.shape
+    K = np.asarray(K, np.float64)
+    T = np.asarray(T_WC, np.float64)
+
+    def points(v: np.ndarray, u: np.ndarray) -> np.ndarray:
+        D = raw[v, u].astype(np.float64)
+        if scale is not None:
+            D = D / scale
+        P = np.stack([(u - K[0, 2]) / K[0, 0] * D, (v - K[1, 2]) / K[1, 1] * D, D], axis=-1)
+        return geometry.transform(T, P)
+
+    s = KEYFRAME_SAMPLE
+    v, u = np.nonzero(raw[s // 2::s, s // 2::s] > 0)
+    if not len(v) or not evidence.passed(points(v * s + s // 2, u * s + s // 2)).any():
+        return 0
+    v, u = np.nonzero(raw > 0)
+    gone = evidence.passed(points(v, u))
+    raw[v[gone], u[gone]] = 0
+    return int(gone.sum())
+
+
+def surfel_samples(surfels) -> tuple[np.ndarray, np.ndarray]:
+    """(points (M, 3), owner (M,)): points every ``SURFEL_SAMPLE_M`` over each rectangle
+    (at most ``SURFEL_MAX_SAMPLES`` per surfel)."""
+    pts, owner = [], []
+    for i in range(len(surfels)):
+        ext = np.asarray(surfels.extent[i], np.float64)
+        n = np.maximum(1, np.ceil(ext / SURFEL_SAMPLE_M)).astype(int)
+        while n[0] * n[1] > SURFEL_MAX_SAMPLES:
+            n = np.maximum(1, (n * 0.8).astype(int))
+        a = (np.arange(n[0]) + 0.5) / n[0] - 0.5
+        b = (np.arange(n[1]) + 0.5) / n[1] - 0.5
+        A, B = np.meshgrid(a * ext[0], b * ext[1], indexing="ij")
+        p = (surfels.center[i][None] + A.reshape(-1, 1) * surfels.axis1[i][None]
+             + B.reshape(-1, 1) * surfels.axis2[i][None])
+        pts.append(p)
+        owner.append(np.full(len(p), i))
+    if not pts:
+        return np.zeros((0, 3)), np.zeros(0, np.int64)
+    return np.concatenate(pts), np.concatenate(owner)
+
+
+def surfels_passed(surfels, evidence: FreeSpace) -> np.ndarray:
+    """(S,) bool: surfels more than half of whose testable points ``evidence`` passes through."""
+    if not len(surfels):
+        return np.zeros(0, bool)
+    pts, owner = surfel_samples(surfels)
+    passed, testable = evidence.tested(pts)
+    n_pass = np.bincount(owner, passed, minlength=len(surfels))
+    n_test = np.bincount(owner, testable, minlength=len(surfels))
+    return (n_pass >= SURFEL_MIN_CLEARED) & (n_pass > SURFEL_CLEAR_SHARE * n_test)
