@@ -77,6 +77,7 @@ class SubmapPipeline:
         self._steps = 0
         self._since_keyframe = 0
         self.publisher = SubmapPublisher(self)
+        self.retraining: dict[Cell, int] = {}  # pose corrections: submaps owed steps, trained first (mapper/repose.py)
 
     @classmethod
     def from_settings(cls, preset: str = "auto", training: dict[str, Any] | None = None, atlanta: bool = True,
@@ -264,6 +265,10 @@ class SubmapPipeline:
 
     # ------------------------------------------------------------------ training
     def _pick(self) -> Submap:
+        if self.retraining:  # the submaps a pose correction changed first (aisdf.mapper.repose)
+            from ..mapper.repose import retrain_pick
+
+            return retrain_pick(self)
         s = self.sub_cfg
         idle = self._since_keyframe >= s.idle_steps
         refine = idle or (s.refine_every and (self._steps + 1) % s.refine_every == 0)

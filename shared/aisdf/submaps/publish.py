@@ -97,6 +97,8 @@ class SubmapPublisher:
         if changed_only and mark:
             self.publications += 1
         for sm in self.pipe.submaps.values():
+            if sm.cell in self.pipe.retraining:  # a pose correction's fresh network: held until trained (repose.py)
+                continue
             if changed_only and (sm.trainer.steps == sm.published_step or not self.due(sm, mark)):
                 continue
             if mark:
