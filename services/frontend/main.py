@@ -245,7 +245,10 @@ def cli(argv: list[str] | None = None) -> None:
     p.add_argument("--building", help="synthetic building (office, manhattan, atlanta, stairs, floor)")
     p.add_argument("--fast", action="store_true", help="as fast as possible instead of the sensor's rate")
     p.add_argument("--max-frames", type=int, help="stop after this many frames")
-    r = p.add_argument_group("live ROS 2 robot (--source ros2, over rmw_zenoh; any ros2.* field with --set)")
+    r = p.add_argument_group("live ROS 2 robot (--source ros2, over rmw_zenoh; any ros2.* field with --set)",
+                             "Loop closures: --set ros2.odom_frame=odom re-poses the keyframes sent when map -> odom "
+                             "moves by over 1 cm or 0.5 deg (protocol 1.11); a SLAM node may instead send its poses "
+                             "with aisdf.poses.send_corrections (docs/ros.md).")
     r.add_argument("--ros-connect", action="append", metavar="ENDPOINT",
                    help="the robot's Zenoh router (repeatable; default tcp/localhost:7447)")
     r.add_argument("--ros-zenoh-config", metavar="FILE", help="Zenoh session file for the ROS side "

@@ -1,5 +1,6 @@
 """Wire protocol v1 (docs/protocol.md), the map's side: keyframes, acknowledgements, weight
-snapshots, submap indexes and surfel maps, one MessagePack map per payload, arrays as
+snapshots, submap indexes, surfel maps and pose corrections (1.11: ``PoseCorrections`` ->
+``PosesApplied`` on ``control/mapper/poses``), one MessagePack map per payload, arrays as
 ``{"dtype", "shape", "data"}`` maps (``codec``, whose ``pack``/``unpack`` and errors are
 re-exported here). Pure: bytes in, typed messages out. The planners' requests and replies
 (``SdfRequest``, ``SdfReply``, ``MeshRequest``, ``MeshReply``) are :mod:`aisdf.query_messages`.

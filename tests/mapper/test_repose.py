@@ -81,10 +81,15 @@ def test_a_correction_gives_the_map_of_the_right_poses(seq, kind):
             assert [v.frame.key for v in got.trainer.store.keyframes] == [v.frame.key for v in sm.trainer.store.keyframes]
             for v, w in zip(got.trainer.store.keyframes, sm.trainer.store.keyframes):
                 np.testing.assert_array_equal(v.pixel_mask, w.pixel_mask)
-        assert rep["submaps"] and all(p.submaps[c].published_step == -1 for c in p.submaps
-                                      if p.submaps[c].id in rep["submaps"])
-        # the retrained submaps are published with the next map, their points where the right poses put them
+        changed = {c for c in p.submaps if p.submaps[c].id in rep["submaps"]}
+        assert changed and all(p.submaps[c].published_step == -1 for c in changed)
+        # a fresh network is held back until it has had its steps; a kept one goes with the next map
+        assert rep["reset"] and set(p.retraining) == changed and set(p.retraining.values()) == {3}
         msgs = dict(p.map_messages(99))
+        assert not any(f"map/submaps/{sid}" in msgs for sid in rep["reset"])
+        steps = [p.step()["submap"] for _ in range(3 * len(changed))]  # their steps come first
+        assert sorted(steps) == sorted(p.submaps[c].id for c in changed for _ in range(3)) and not p.retraining
+        msgs = dict(p.map_messages(100))
         assert all(f"map/submaps/{sid}" in msgs for sid in rep["submaps"])
         index = protocol.SubmapIndex.from_msg(protocol.unpack(msgs["map/index"]))
         assert rep["removed"] and not set(rep["removed"]) & set(index.submaps)  # the wrong poses' submap is gone
@@ -114,3 +119,16 @@ def test_a_bad_correction_changes_nothing(seq, kind):
     np.testing.assert_array_equal(p.measured.sums, before[0])
     np.testing.assert_array_equal(p.observed.keys, before[1])
     assert p.steps == before[2]
+
+
+def test_networks_start_again_only_for_a_large_correction(seq):
+    p = build(seq, "submaps")
+    trainers = {c: sm.trainer for c, sm in p.submaps.items()}
+    T = seq.frame(56)["T_WC"].copy()
+    T[:3, 3] += [0.02, 0.0, 0.0]  # 2 cm: the networks follow it
+    rep = p.repose({("depth", 56): T})
+    assert rep["reposed"] == 1 and rep["submaps"] and rep["reset"] == []
+    assert all(p.submaps[c].trainer is trainers[c] for c in p.submaps if c in trainers)
+    rep = p.repose({("depth", 56): wrong(seq.frame(56)["T_WC"])})  # 1.2 m: they start again
+    assert rep["reset"] and all(p.submaps[c].trainer.steps == 0 and p.retraining[c] == 3 for c in p.submaps
+                                if p.submaps[c].id in rep["reset"])

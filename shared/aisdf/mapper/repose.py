@@ -23,15 +23,20 @@ For a batch ``{(sensor, frame_id): T_WC}`` (``aisdf.mapper.Mapper.repose``), bot
    it out of those it no longer observes, and keeps every store in arrival order. A submap
    whose keyframes changed learnt the old surface where the keyframe no longer puts it, and
    a network forgets a surface only where new rays pass; so by default (``submap.repose_networks:
-   reset``) its network starts again (a fresh network with its seed and centre, new AdamW
-   state) and is trained ``submap.repose_steps`` steps on its corrected keyframes at once,
-   before the map is published; ``keep`` trains the old network on as it is (the old
-   surfaces fade only where new rays pass). A submap left with no keyframe is removed from
+   reset``) when one of its keyframes' observed points moved by more than
+   ``submap.repose_reset_m`` (95th percentile over its rays) its network starts again (a
+   fresh network with its seed and centre, new AdamW state); a smaller correction keeps the
+   network, which follows it within steps. Either way the next ``submap.repose_steps``
+   steps of each such submap come first (``retrain_pick``, the pipeline's steps, not at
+   once: the correction is answered without waiting for them), and a fresh network is not
+   published before it has had them: receivers keep its last snapshot meanwhile. ``keep``
+   never resets (the old surfaces fade only where new rays pass). A submap left with no keyframe is removed from
    the mapper's map (a query service keeps the snapshot it holds: docs/protocol.md).
-   The one-network mapper keeps its network and trains it ``SINGLE_STEPS`` steps at once.
+   The one-network mapper keeps its network, which trains on from the corrected keyframes.
 
-Every changed submap is published with the next map (``published_step`` reset), the
-measured points and observed space of every submap with it. Costs are timed per part
+Every changed submap is published with the next map (``published_step`` reset; a fresh
+network once trained), and so is every submap whose observed space or measured points the
+moved keyframes touched (their rays at the old and the new pose). Costs are timed per part
 (``timings_ms`` of the result; the mapper service logs them).
 """
 
@@ -49,7 +54,7 @@ from ..structure.surfel_types import Surfels
 from .coverage import KeyframeCoverage
 from .intake import grow_bounds
 
-SINGLE_STEPS = 20  # the one-network mapper: training steps taken at once after a correction
+SINGLE_STEPS = 0  # the one-network mapper: training steps taken at once after a correction
 SAME_POSE_ATOL = 1e-9  # a pose within this (every matrix entry) of the held one is unchanged
 
 Key = tuple[str, int]
@@ -65,12 +70,13 @@ class ReposeResult:
     unchanged: list[Key] = field(default_factory=list)
     submaps: list[str] = field(default_factory=list)
     removed: list[str] = field(default_factory=list)  # submaps left with no keyframe
+    reset: list[str] = field(default_factory=list)  # submaps whose network started again
     timings_ms: dict[str, float] = field(default_factory=dict)
 
     def as_dict(self) -> dict:
         return {"reposed": len(self.reposed), "unknown": [list(k) for k in self.unknown],
                 "unchanged": len(self.unchanged), "submaps": list(self.submaps),
-                "removed": list(self.removed),
+                "removed": list(self.removed), "reset": list(self.reset),
                 "timings_ms": {k: round(v, 2) for k, v in self.timings_ms.items()}}
 
 
@@ -131,6 +137,8 @@ def rebuild_knowledge(intake, frames: list, timings: dict[str, float]) -> None:
         measured = MeasuredSurface(m.voxel, m.min_hits, m.max_depth)
         for f in frames:
             measured.add(f.metres(), f.K, f.T_WC)
+        if hasattr(m, "version"):  # a change count readers compare: it moves on, never back
+            measured.version = m.version + 1
         intake.measured = measured
         timings["measured"] = 1e3 * (time.perf_counter() - t)
     t = time.perf_counter()
@@ -158,8 +166,8 @@ def rebuild_knowledge(intake, frames: list, timings: dict[str, float]) -> None:
 
 
 def repose_single(pipe, corrections: dict, steps: int = SINGLE_STEPS) -> ReposeResult:
-    """``MappingPipeline.repose``: module docstring; the network is kept and trained
-    ``steps`` steps at once when any keyframe moved."""
+    """``MappingPipeline.repose``: module docstring; the network is kept (and trained
+    ``steps`` steps at once when any keyframe moved: none by default)."""
     corr = check_corrections(corrections)
     res = ReposeResult()
     t0 = time.perf_counter()
@@ -217,16 +225,21 @@ def repose_submaps(pipe, corrections: dict) -> ReposeResult:
     corr = check_corrections(corrections)
     res = ReposeResult()
     t0 = time.perf_counter()
-    touched = []  # ray points of the keyframes to move, at their old pose and their new one
+    before = {}  # ray points of the keyframes to move, at their old pose
     if pipe.grid is not None:
-        touched = [pipe._ray_points(pipe.frames[k])[0] for k in corr if k in pipe.frames]
+        before = {k: pipe._ray_points(pipe.frames[k])[0] for k in corr if k in pipe.frames}
     set_poses(pipe.frames, corr, res)
+    after = {k: pipe._ray_points(pipe.frames[k])[0] for k in res.reposed} if pipe.grid is not None else {}
+    # how far each keyframe's observed points moved (the 95th percentile over its sampled rays)
+    moved_m = {k: float(np.percentile(np.linalg.norm(after[k] - before[k], axis=1), 95)) if len(after[k]) else 0.0
+               for k in after}
     res.timings_ms["poses"] = 1e3 * (time.perf_counter() - t0)
     if not res.reposed:
         res.timings_ms["total"] = 1e3 * (time.perf_counter() - t0)
         return res
     rebuild_knowledge(pipe.intake, [sf.frame for sf in pipe.frames.values()], res.timings_ms)
     changed: set = set()
+    resets: set = set()  # submaps one of whose keyframes moved beyond repose_reset_m
     if pipe.grid is not None:
         t = time.perf_counter()
         rank = {k: i for i, k in enumerate(pipe.frames)}
@@ -235,6 +248,7 @@ def repose_submaps(pipe, corrections: dict) -> ReposeResult:
             if key in waiting:
                 continue
             kf = pipe.frames[key]
+            far = moved_m.get(key, 0.0) > pipe.sub_cfg.repose_reset_m
             losses = {}
             for c, sm in pipe.submaps.items():
                 if key in sm.seen_by:
@@ -243,6 +257,8 @@ def repose_submaps(pipe, corrections: dict) -> ReposeResult:
                     sm.trainer.remove_keyframe(key)
                     sm.seen_by.remove(key)
                     changed.add(c)
+                    if far:
+                        resets.add(c)
             for c in cells_seen(pipe, kf):
                 sm = pipe.submaps.get(c) or pipe._new_submap(c)
                 view = kf.view(pipe._pixel_mask(kf, c), pipe._region(c))
@@ -255,6 +271,8 @@ def repose_submaps(pipe, corrections: dict) -> ReposeResult:
                     _insert_ordered(store.keyframes, view, rank, lambda v: v.frame.key)
                 _insert_ordered(sm.seen_by, key, rank, lambda k: k)
                 changed.add(c)
+                if far:
+                    resets.add(c)
         res.timings_ms["assign"] = 1e3 * (time.perf_counter() - t)
         t = time.perf_counter()
         s = pipe.sub_cfg
@@ -264,15 +282,15 @@ def repose_submaps(pipe, corrections: dict) -> ReposeResult:
                 _remove_submap(pipe, c)
                 res.removed.append(sm.id)
                 continue
-            if s.repose_networks == "reset":
+            if s.repose_networks == "reset" and c in resets:
                 reset_network(pipe, sm)
-            sm.published_step = -1  # published with the next map, whatever its steps
-            for _ in range(s.repose_steps):
-                sm.trainer.step()
-        res.timings_ms["train"] = 1e3 * (time.perf_counter() - t)
+                res.reset.append(sm.id)
+            if s.repose_steps:  # trained first, a fresh network held back until then (retrain_pick)
+                pipe.retraining[c] = max(pipe.retraining.get(c, 0), s.repose_steps)
+            sm.published_step = -1  # published with the next map (a fresh network: once trained)
+        res.timings_ms["reset"] = 1e3 * (time.perf_counter() - t)
     if pipe.grid is not None:  # submaps whose observed space or measured points moved: published again
-        touched += [pipe._ray_points(pipe.frames[k])[0] for k in res.reposed]
-        pts = np.concatenate(touched)
+        pts = np.concatenate(list(before.values()) + list(after.values()))
         grow = pipe.grid.overlap_m + pipe.observed.voxel + pipe.cfg.trunc_distance
         for c, sm in pipe.submaps.items():
             if c in changed or pipe.grid.inside(c, pts, grow=grow).any():
@@ -287,7 +305,22 @@ def repose_submaps(pipe, corrections: dict) -> ReposeResult:
     return res
 
 
+def retrain_pick(pipe):
+    """``SubmapPipeline._pick`` while ``pipe.retraining`` owes steps: the submap owed most
+    (the first id on a tie), one step less; paid up, it is published with the next map."""
+    from ..submaps.grid import cell_id
+
+    c = max(sorted(pipe.retraining, key=cell_id), key=pipe.retraining.__getitem__)
+    pipe.retraining[c] -= 1
+    sm = pipe.submaps[c]
+    if pipe.retraining[c] <= 0:
+        del pipe.retraining[c]
+        sm.published_step = -1
+    return sm
+
+
 def _remove_submap(pipe, c) -> None:
+    pipe.retraining.pop(c, None)
     del pipe.submaps[c]
     pipe._credit.pop(c, None)
     pipe._recent = [{k: n for k, n in seen.items() if k != c} for seen in pipe._recent]

@@ -43,6 +43,8 @@ class SubmapConfig(Model):
                                                       "1.11), a submap whose keyframes changed: reset = a fresh "
                                                       "network trained on the corrected keyframes (the old surfaces "
                                                       "go at once); keep = the old network trained on")
+    repose_reset_m: float = Field(0.1, ge=0, description="... (reset only when one of its keyframes' observed "
+                                  "points moved by more than this, m: a smaller correction keeps the network) ...")
     repose_steps: int = Field(30, ge=0, description="... and trained this many steps at once, before the corrected "
                               "map is published")
     measured: bool = Field(True, description="pool the keyframes' depth pixels into 10 cm voxels and publish, with "
