@@ -12,7 +12,7 @@ import pytest
 import open3d  # noqa: F401 - the voxel baseline and the reference need it (dev extra)
 
 from aisdf.bench.evaluation import EvalSet
-from aisdf.bench.methods import METHODS, ComputeClock, Runner, checkpoint_indices, run_stream
+from aisdf.bench.methods import ComputeClock, Runner, checkpoint_indices, run_stream
 from aisdf.bench.profiles import resolve
 from aisdf.bench.report import METRICS
 from aisdf.bench.scenes import REFERENCE_LABEL, make_scene
@@ -20,7 +20,7 @@ from aisdf.bench.suite import run
 from aisdf.cli import main as cli_main
 from aisdf.datasets import require_data
 
-ALL = list(METHODS)
+ALL = resolve("quick").methods  # every Table I column but the 2 cm voxel map (test_table1.py has it)
 SCENE = "manhattan"
 
 
@@ -67,21 +67,30 @@ def test_quick_tables_are_finite_for_every_method(quick):
         for k in ("sampling", "bound", "forward", "backward", "sum"):
             assert math.isfinite(t3[model][k]) and t3[model][k] > 0, (model, k)
     assert t3["aisdf"]["sum"] > t3["aisdf"]["forward"] + t3["aisdf"]["backward"]
-    assert t3["voxblox"]["integrate"] > 0
+    assert t3["voxel-5cm"]["integrate"] > 0 and t3["voxel-5cm"]["tsdf_mb"] > 0 and t3["voxel-5cm"]["esdf_mb"] > 0
     md = (quick / "table1.md").read_text()
     assert "iSDF" in md and "AiSDF (w. explicit map)" in md and "exact analytic SDF" in md
+    assert "AiSDF served (default answer)" in md and "Voxel TSDF/ESDF 5 cm" in md
+    t1b = _load(quick, "table1b.json")["scenes"][SCENE]
+    assert set(t1b) == set(ALL)
+    for m, row in t1b.items():
+        assert row["observed_share"] + row["unobserved_share"] == pytest.approx(1.0), m
+        assert 0.5 < row["observed_share"] < 1 and math.isfinite(row["sdf_error_unobserved_cm"]), (m, row)
+    assert "Table Ib" in (quick / "table1b.md").read_text()
 
 
 # The quick profile's final figures (iterations mode: every run trains the same steps, and two
 # runs gave the same figures to the last digit) and the bounds held, about 2x each:
-# ``aisdf bench --quick --no-progress`` at 34be166 on 2026-12-05, 2 CPU cores:
+# ``aisdf bench --quick --no-progress`` at 34be166 on 2026-12-05, 2 CPU cores (voxel-5cm and
+# aisdf-served at 938d0ec with the columns added, the others unchanged to the last digit):
 #                     SDF (cm)        collision          gradient cosine
-#   voxblox           3.71  < 8       0.0255 < 0.06      0.095 < 0.2
+#   voxel-5cm         3.29  < 8       0.0228 < 0.06      0.092 < 0.2
 #   isdf              4.87  < 10      0.0365 < 0.08      0.174 < 0.35
 #   aisdf             7.85  < 16      0.0578 < 0.12      0.199 < 0.4
 #   aisdf+explicit    7.60  < 16      0.0559 < 0.12      0.194 < 0.4
-QUICK_BOUNDS = {"voxblox": (8.0, 0.06, 0.2), "isdf": (10.0, 0.08, 0.35), "aisdf": (16.0, 0.12, 0.4),
-                "aisdf+explicit": (16.0, 0.12, 0.4)}
+#   aisdf-served      2.36  < 5       0.0169 < 0.04      0.105 < 0.22
+QUICK_BOUNDS = {"voxel-5cm": (8.0, 0.06, 0.2), "isdf": (10.0, 0.08, 0.35), "aisdf": (16.0, 0.12, 0.4),
+                "aisdf+explicit": (16.0, 0.12, 0.4), "aisdf-served": (5.0, 0.04, 0.22)}
 
 
 def test_quick_errors_are_near_the_measured_figures(quick):
@@ -98,7 +107,7 @@ def test_quick_errors_are_near_the_measured_figures(quick):
     over = res["scenes"][SCENE]["runs"][0]["over_time"]
     assert len(over) == 3 and over[-1]["frame"] == res["scenes"][SCENE]["frames"] - 1
     models = res["scenes"][SCENE]["runs"][0]["models"]
-    assert models["voxblox"]["frames_seen"] == models["isdf"]["frames_seen"] == res["scenes"][SCENE]["frames"]
+    assert models["voxel-5cm"]["frames_seen"] == models["isdf"]["frames_seen"] == res["scenes"][SCENE]["frames"]
     assert models["isdf"]["keyframes"] >= 3
     # iterations mode: 50 steps after the first keyframe, 15 after each later one (quick = 1/4 of iSDF's)
     assert models["isdf"]["steps"] == 50 + 15 * (models["isdf"]["keyframes"] - 1)

@@ -8,6 +8,17 @@ one. Points where the ground truth is undefined are left out. The gradient metri
 leaves out points inside walls (s < 0, signed fields) or whose 1 cm stencil leaves a
 ground-truth grid. Ground-truth gradients: analytic for the synthetic buildings, else
 central differences with 1 cm steps.
+
+Observed / unobserved (``split=True``, the final evaluation: Table Ib): a point's nearest
+true surface point is ``p - s * n`` with ``s`` its ground-truth distance and ``n`` the unit
+ground-truth gradient (the synthetic buildings: the exact SDF and its analytic gradient;
+the meshes: the point-to-mesh distance and its gradient, so the closest mesh point itself
+for the exact distance, within about a centimetre for a 1 cm grid). It is *observed* when
+a measured depth point lies within ``OBSERVED_M`` (5 cm) of it: any valid pixel (depth up
+to the scene's ``max_depth``, as the maps use it) of the frames the points are drawn from
+(every 5th frame of the stream), back-projected, thinned to one per 1 cm voxel. Else
+*unobserved*: a surface no camera measured (behind furniture, beyond the walls, the far
+side of a corner), whose distance every map has to guess.
 """
 
 from __future__ import annotations
@@ -17,14 +28,61 @@ from collections.abc import Callable, Sequence
 import numpy as np
 
 from .. import metrics
+from ..geometry import backproject, kdtree, transform, valid_depth
+
+OBSERVED_M = 0.05  # a nearest true surface point this close to a measured depth point is observed
+THIN_M = 0.01  # measured points: one per voxel of this edge
+
+
+def measured_depth_points(frames: Sequence[dict], max_depth: float, voxel: float = THIN_M) -> np.ndarray:
+    """(M, 3): every valid pixel of ``frames`` back-projected into the world, one per ``voxel``."""
+    out = []
+    for f in frames:
+        d = np.asarray(f["depth"], np.float64)
+        ok = valid_depth(d, max_depth)
+        out.append(transform(np.asarray(f["T_WC"], np.float64), backproject(d, f["K"])[ok]))
+    pts = np.concatenate(out) if out else np.zeros((0, 3))
+    if not len(pts):
+        return pts
+    _, first = np.unique(np.floor(pts / voxel).astype(np.int64), axis=0, return_index=True)
+    return pts[first]
+
+
+def nearest_surface(scene, points: np.ndarray, sdf: np.ndarray) -> np.ndarray:
+    """(N, 3): the nearest true surface point of each point, ``p - s * n`` (module docstring)."""
+    if scene.gt_grad is not None:
+        n = np.asarray(scene.gt_grad(points), dtype=np.float64)
+    else:
+        n = metrics.gt_gradient_central(scene.gt_sdf, points, metrics.GRAD_STEP)
+    norm = np.linalg.norm(n, axis=1, keepdims=True)
+    n = np.where(norm > 1e-9, n / np.maximum(norm, 1e-12), 0.0)
+    return points - sdf[:, None] * n
+
+
+def observed_mask(scene, frames: Sequence[dict], points: np.ndarray, sdf: np.ndarray,
+                  within: float = OBSERVED_M) -> np.ndarray:
+    """(N,) bool: the nearest true surface point of each point lies within ``within`` of a
+    measured depth point of ``frames``."""
+    measured = measured_depth_points(frames, scene.max_depth)
+    if not len(measured) or not len(points):
+        return np.zeros(len(points), bool)
+    q = nearest_surface(scene, points, sdf)
+    ok = np.all(np.isfinite(q), axis=1)  # a gradient undefined there (off a ground-truth grid): not known observed
+    out = np.zeros(len(points), bool)
+    d, _ = kdtree(measured).query(q[ok], distance_upper_bound=within)
+    out[ok] = np.isfinite(d)
+    return out
 
 
 class EvalSet:
-    def __init__(self, scene, frames: Sequence[dict], n_points: int, seed: int | np.random.Generator = 0):
+    def __init__(self, scene, frames: Sequence[dict], n_points: int, seed: int | np.random.Generator = 0,
+                 split: bool = False):
         p = metrics.eval_points(frames, n_points=n_points, every=1, rng=seed, far_margin=scene.far_margin)
         s = np.asarray(scene.gt_sdf(p), dtype=np.float64)
         keep = np.isfinite(s)
         self.points, self.gt = p[keep], s[keep]
+        # Table Ib: whether each point's nearest true surface was measured (None: not split)
+        self.observed = observed_mask(scene, frames, self.points, self.gt) if split else None
         if hasattr(scene.gt_sdf, "gradient_mask"):
             self.gmask = np.asarray(scene.gt_sdf.gradient_mask(self.points, metrics.GRAD_STEP), dtype=bool)
         else:
@@ -43,10 +101,23 @@ class EvalSet:
         f, g = query(self.points, True)
         f = np.asarray(f, dtype=np.float64)
         e = metrics.sdf_error(f, self.gt)
-        return {
+        out = {
             "sdf_error_cm": 100.0 * e,
             "collision_cost_error": metrics.collision_cost_error(f, self.gt, metrics.EPSILON),
             "gradient_cosine_distance": metrics.gradient_cosine_distance(np.asarray(g)[self.gmask], self.gt_grad),
             "n_points": int(len(self.points)),
             "n_gradient_points": int(self.gmask.sum()),
         }
+        if self.observed is not None:
+            out.update(self.split(f))
+        return out
+
+    def split(self, f: np.ndarray) -> dict:
+        """Mean SDF error (cm) on the points whose nearest true surface was observed and on the
+        others (NaN where there are none), and the share of each."""
+        err = np.abs(np.asarray(f, np.float64) - self.gt)
+        obs = self.observed
+        n = max(len(err), 1)
+        mean = lambda m: 100.0 * float(err[m].mean()) if m.any() else float("nan")  # noqa: E731
+        return {"sdf_error_observed_cm": mean(obs), "sdf_error_unobserved_cm": mean(~obs),
+                "observed_share": float(obs.sum()) / n, "unobserved_share": float((~obs).sum()) / n}

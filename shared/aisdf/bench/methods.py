@@ -3,7 +3,20 @@
 A *model* is one map built from the stream (a voxel map, or one trained network); a
 *method* is a column of Table I: a model read one way. AiSDF "w/o" and "w." explicit
 map are the same trained network, read alone or fused with its surfels
-(``aisdf.structure.fusion.fuse``, as the query service does).
+(``aisdf.structure.fusion.fuse``, the paper's Sec. IV-D); "served" is that network again,
+read as the query service answers planners by default (``source: "fused"``, protocols 1.4
+and 1.5): ``aisdf.query.answer.served_answer`` of the network, the signed distance to the
+global surfels and the mapper's measured points (``measured_points()``), with the query
+service's fuse radius and one search worker, as ``QueryEngine._network_answer`` composes
+it. That is the exact composition (``exact: true`` in a request); by default the service
+answers from its bake of that same field (``aisdf.baked``: trilinear within ``bake_tol``,
+5 mm, where a block is refined), which the suite does not reproduce. The AiSDF model pools
+measured points as the mapper does by default (``measured``: True), the other networks do
+not (the paper's models; pooling changes no training, only the keyframe time and which
+stored keyframes free-space clearing checks).
+
+The voxel maps (``aisdf.bench.voxel.VoxelEsdf``, what Voxblox does): the paper's 5.5 cm,
+and 5 cm and 2 cm, the sizes a team would run (``aisdf bench query`` compares the same two).
 
 Two modes (``run_stream``):
 
@@ -31,6 +44,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..structure.fusion import DEFAULT_FUSE_RADIUS, fused_sdf
+from ..structure.measured import MeasuredPoints
 from ..mapping.frames import Frame
 
 
@@ -41,12 +55,16 @@ class ModelSpec:
     surfel_mask: bool = False
     surfel_loss: bool = False
     surfel_bounds: bool = False  # beyond the paper (the mapper's default); the paper's tables go without
+    measured: bool = False  # pool measured points (protocol 1.5, the mapper's default): the served answer uses them
+    voxel_size: float = 0.055  # voxel maps: edge (m)
 
 
 MODELS: dict[str, ModelSpec] = {
-    "voxblox": ModelSpec("voxel"),
+    "voxblox": ModelSpec("voxel"),  # the paper's 5.5 cm
+    "voxel-5cm": ModelSpec("voxel", voxel_size=0.05),
+    "voxel-2cm": ModelSpec("voxel", voxel_size=0.02),
     "isdf": ModelSpec("neural"),
-    "aisdf": ModelSpec("neural", True, True, True),
+    "aisdf": ModelSpec("neural", True, True, True, measured=True),
     "aisdf-mask": ModelSpec("neural", True, True, False),  # Table II: surfel mask only
     "aisdf-loss": ModelSpec("neural", True, False, True),  # Table II: surfel loss only
 }
@@ -54,13 +72,17 @@ MODELS: dict[str, ModelSpec] = {
 # Table I columns: method -> (model, view).
 METHODS: dict[str, tuple[str, str]] = {
     "voxblox": ("voxblox", "voxel"),
+    "voxel-5cm": ("voxel-5cm", "voxel"),
+    "voxel-2cm": ("voxel-2cm", "voxel"),
     "isdf": ("isdf", "implicit"),
     "aisdf": ("aisdf", "implicit"),
     "aisdf+explicit": ("aisdf", "fused"),
+    "aisdf-served": ("aisdf", "served"),
 }
 LABELS: dict[str, str] = {
-    "voxblox": "Voxblox-like TSDF/ESDF 5.5 cm", "isdf": "iSDF", "aisdf": "AiSDF (w/o explicit map)",
-    "aisdf+explicit": "AiSDF (w. explicit map)",
+    "voxblox": "Voxblox-like TSDF/ESDF 5.5 cm", "voxel-5cm": "Voxel TSDF/ESDF 5 cm",
+    "voxel-2cm": "Voxel TSDF/ESDF 2 cm", "isdf": "iSDF", "aisdf": "AiSDF (w/o explicit map)",
+    "aisdf+explicit": "AiSDF (w. explicit map)", "aisdf-served": "AiSDF served (default answer)",
 }
 # Table II rows: (surfel mask, surfel loss) -> model; both off is iSDF, both on AiSDF.
 ABLATION: list[tuple[tuple[bool, bool], str]] = [
@@ -150,8 +172,15 @@ class VoxelRunner(Runner):
         fin = self.map.timings["finalize_ms"]
         return {"integrate": round(s["integrate_ms"], 3), "esdf": round(float(np.mean(fin)) if fin else 0.0, 3)}
 
+    def memory_mb(self) -> dict:
+        """The TSDF's allocated blocks (tsdf and weight, float32), the dense ESDF with its
+        observed mask and, once built, its gradient grids (float32); MB."""
+        self.prepare()
+        return {k: round(v / 1e6, 3) for k, v in self.map.memory_bytes().items()}
+
     def summary(self, up=None):
-        return {**super().summary(), "keyframes": None, "steps": None, "timings_ms": self.timings()}
+        return {**super().summary(), "keyframes": None, "steps": None, "timings_ms": self.timings(),
+                "voxel_size": self.map.voxel_size, "memory_mb": self.memory_mb()}
 
 
 class NeuralRunner(Runner):
@@ -166,11 +195,11 @@ class NeuralRunner(Runner):
 
         super().__init__(name, clock)
         self.spec = spec
-        # measured=False: the paper's tables score the network and its fusion with the surfels;
-        # pooling measured points (protocol 1.5, beyond the paper) would only add keyframe time.
+        # measured: only AiSDF's model pools measured points (protocol 1.5, beyond the paper), for
+        # the served answer; the paper's columns read the network and its surfels alone.
         self.pipe = MappingPipeline.from_settings(preset, training=training, atlanta=spec.atlanta,
                                                   surfel_mask=spec.surfel_mask, surfel_loss=spec.surfel_loss,
-                                                  surfel_bounds=spec.surfel_bounds, measured=False)
+                                                  surfel_bounds=spec.surfel_bounds, measured=spec.measured)
         self.selector = KeyframeSelector(KeyframeConfig(**(keyframes or {})))
         self._ms: dict[str, list[float]] = defaultdict(list)  # the pipeline's own per-module timings
         self._wall: dict[str, list[float]] = defaultdict(list)  # measured here: whole step / keyframe add
@@ -232,7 +261,36 @@ class NeuralRunner(Runner):
         g = None if g is None else g.astype(np.float64)
         if view == "fused":
             f, g = fused_sdf(p, f, g, self.surfels(), DEFAULT_FUSE_RADIUS)
+        elif view == "served":
+            f, g = self.served(p, f, g)
         return f, g
+
+    def measured(self) -> MeasuredPoints | None:
+        """The measured points the mapper publishes with its map (None: it pools none), as the
+        query service holds them."""
+        if self.pipe.measured is None:
+            return None
+        return MeasuredPoints(self.pipe.measured_points())
+
+    def served(self, p: np.ndarray, f: np.ndarray, g: np.ndarray | None,
+               radius: float = DEFAULT_FUSE_RADIUS) -> tuple[np.ndarray, np.ndarray | None]:
+        """The query service's default answer from the network's ``f``/``g`` at ``p``
+        (``QueryEngine._network_answer``, source "fused"): ``served_answer`` of the network,
+        the signed distance to the global surfels and the measured points; the network alone
+        when there are neither."""
+        from ..query.answer import served_answer
+        from ..structure.surfel_map import explicit_sdf
+
+        s, measured = self.surfels(), self.measured()
+        if s is None and measured is None:
+            return f, g
+        d_e = g_e = None
+        if s is not None:
+            d_e, g_e, _ = explicit_sdf(p, s)
+            d_e, g_e = d_e.astype(np.float32), g_e.astype(np.float32)
+        sf, sg = served_answer(p, f.astype(np.float32), None if g is None else g.astype(np.float32), d_e, g_e,
+                               measured, radius)
+        return sf.astype(np.float64), None if sg is None else sg.astype(np.float64)
 
     def estimated_up(self) -> np.ndarray | None:
         """The Atlanta frame's vertical, when estimated (sign as the module gives it)."""
@@ -257,7 +315,7 @@ def make_runner(model: str, scene, clock: ComputeClock, preset: str, training: d
                 keyframes: dict | None = None) -> Runner:
     spec = MODELS[model]
     if spec.kind == "voxel":
-        return VoxelRunner(model, clock, scene.bounds, scene.max_depth)
+        return VoxelRunner(model, clock, scene.bounds, scene.max_depth, spec.voxel_size)
     return NeuralRunner(model, clock, spec, preset, training, keyframes)
 
 

@@ -2,7 +2,8 @@
 
 * ``quick``: CI-sized, about two minutes on two CPU cores: one small synthetic scene,
   80x60 images, 4 s of stream, a 64-wide network, a quarter of iSDF's schedule,
-  20k evaluation points.
+  20k evaluation points; no 2 cm voxel map (its dense ESDF over the scene's box takes
+  seconds per evaluation).
 * ``standard``: this project's CPU figures: every scene, the ``cpu`` training preset
   (width 128, 4 x 100 rays a step), a quarter of iSDF's schedule, iSDF's 200k
   evaluation points; the Replica office on every 2nd pose at 300x170.
@@ -17,16 +18,17 @@ from __future__ import annotations
 
 from typing import Any, Literal
 
-from pydantic import Field
+from pydantic import Field, field_validator
 
 from ..config import Model, deep_merge
 
 ALL_SCENES = ["manhattan", "atlanta", "stairs", "replica-office", "7scenes-redkitchen"]
-ALL_METHODS = ["voxblox", "isdf", "aisdf", "aisdf+explicit"]
+ALL_METHODS = ["voxel-5cm", "voxel-2cm", "isdf", "aisdf", "aisdf+explicit", "aisdf-served"]
 
 PROFILES: dict[str, dict[str, Any]] = {
     "quick": {
         "scenes": ["manhattan"], "ablation": ["manhattan"], "preset": "cpu",
+        "methods": [m for m in ALL_METHODS if m != "voxel-2cm"],
         "training": {"network": {"width": 64}, "n_rays": 50, "window_size": 4},
         "schedule_scale": 0.25, "n_points": 20_000, "n_points_checkpoint": 5_000, "checkpoints": 3,
         "mesh_res": 0.12, "slice_res": 0.06, "threads": 1,
@@ -67,7 +69,8 @@ class BenchConfig(Model):
     methods: list[str] = Field(default_factory=lambda: list(ALL_METHODS), description="Table I columns")
     ablation: list[str] = Field(default_factory=list, description="scenes that also get Table II's four models")
     mode: Literal["iterations", "realtime"] = Field("iterations", description="equal iterations, or iSDF's replay")
-    seeds: int = Field(1, ge=1, description="training seeds 0..seeds-1 per scene; tables give the mean")
+    seeds: int | list[int] = Field(1, description="training seeds per scene: a count N (seeds 0..N-1) or the seeds "
+                                   "themselves; tables give the mean and the spread (standard deviation) over them")
     out: str = Field("results/bench", description="results folder")
     data: str | None = Field(None, description="shared data folder (default: AISDF_DATA or ../shared/data)")
     cache_dir: str | None = Field(None, description="ground-truth grids and reference meshes are cached here")
@@ -87,6 +90,21 @@ class BenchConfig(Model):
     artefacts: bool = Field(True, description="write meshes and figures (tables and config always)")
     progress: bool = Field(True, description="show a progress bar")
     scene_opts: dict[str, dict[str, Any]] = Field(default_factory=dict, description="per scene (or 'synthetic')")
+
+    @field_validator("seeds")
+    @classmethod
+    def _seeds(cls, v):
+        if isinstance(v, list):
+            if not v or len(set(v)) != len(v) or min(v) < 0:
+                raise ValueError("seeds: a non-empty list of distinct seeds >= 0")
+        elif v < 1:
+            raise ValueError("seeds: a count of at least 1")
+        return v
+
+    @property
+    def seed_list(self) -> list[int]:
+        """The training seeds, in run order."""
+        return list(self.seeds) if isinstance(self.seeds, list) else list(range(self.seeds))
 
     def opts_for(self, scene: str) -> dict:
         from .scenes import SYNTHETIC

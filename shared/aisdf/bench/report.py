@@ -5,7 +5,8 @@
     {"mode": ..., "n_points": ..., "scenes": {scene: {
         "ground_truth": label, "gt_kind": "exact" | "mesh" | "reference",
         "runs": [  # one per seed
-            {"seed": s, "final": {method: metrics}, "ablation": {model: metrics},
+            {"seed": s, "final": {method: metrics (with the observed / unobserved split)},
+             "ablation": {model: metrics},
              "over_time": [{"frame": i, "t": s, "methods": {method: metrics}}],
              "models": {model: summary (frames seen, keyframes, steps, compute, timings_ms)}}]}}}
 """
@@ -18,9 +19,10 @@ from pathlib import Path
 
 import numpy as np
 
-from .methods import ABLATION, LABELS
+from .methods import ABLATION, LABELS, MODELS
 
 METRICS = ("sdf_error_cm", "collision_cost_error", "gradient_cosine_distance")
+SPLIT = ("observed_share", "sdf_error_observed_cm", "unobserved_share", "sdf_error_unobserved_cm")
 SHORT = {"sdf_error_cm": "SDF (cm)", "collision_cost_error": "Collision", "gradient_cosine_distance": "Gradient"}
 DIGITS = {"sdf_error_cm": 3, "collision_cost_error": 4, "gradient_cosine_distance": 3}
 MODULES = {  # Table III columns: pipeline timing key -> label, in the paper's order
@@ -31,13 +33,16 @@ PAPER_TABLE3 = {"atlanta": 2, "surfels": 54, "sampling": 5, "bound": 7, "forward
 
 
 def _agg(values: list[dict]) -> dict:
-    """Mean and std over seeds of each metric (NaN-aware)."""
+    """Mean and sample standard deviation (n - 1) over seeds of each metric and of the
+    observed / unobserved split (NaN-aware)."""
     out = {}
-    for m in METRICS:
+    for m in METRICS + SPLIT:
         v = np.array([d.get(m, np.nan) for d in values], dtype=np.float64)
         ok = v[np.isfinite(v)]
+        if m in SPLIT and not len(ok):
+            continue
         out[m] = float(ok.mean()) if len(ok) else float("nan")
-        out[f"{m}_std"] = float(ok.std()) if len(ok) > 1 else 0.0
+        out[f"{m}_std"] = float(ok.std(ddof=1)) if len(ok) > 1 else 0.0
     out["seeds"] = len(values)
     out["n_points"] = int(np.mean([d.get("n_points", 0) for d in values])) if values else 0
     return out
@@ -47,6 +52,15 @@ def _fmt(v, m: str) -> str:
     return "n/a" if v is None or not math.isfinite(v) else f"{v:.{DIGITS[m]}f}"
 
 
+def _cell(a: dict, m: str, digits: int | None = None, scale: float = 1.0) -> str:
+    """The mean, and ``± std`` over seeds when there are several."""
+    v = a.get(m, float("nan")) * scale
+    if not math.isfinite(v):
+        return "n/a"
+    d = DIGITS.get(m, 2) if digits is None else digits
+    return f"{v:.{d}f} ± {a[m + '_std'] * scale:.{d}f}" if a.get("seeds", 1) > 1 else f"{v:.{d}f}"
+
+
 def _gt_short(s: dict) -> str:
     return {"exact": "exact", "mesh": "mesh", "reference": "**reference, not truth**"}.get(s["gt_kind"], s["gt_kind"])
 
@@ -54,7 +68,17 @@ def _gt_short(s: dict) -> str:
 def _header(results: dict) -> list[str]:
     return [f"Mode: **{results['mode']}** ({results['mode_note']}). Profile: {results['profile']}. "
             f"Points: up to {results['n_points']:,} along rays of every 5th frame seen (iSDF's protocol); "
-            f"seeds: {results['seeds']}. Lower is better; best per scene and metric in **bold**.", ""]
+            f"seeds: {_seeds(results['seeds'])}. Lower is better; best per scene and metric in **bold**"
+            + (" (by the mean); mean ± standard deviation over the seeds." if _nseeds(results['seeds']) > 1 else "."),
+            ""]
+
+
+def _nseeds(seeds) -> int:
+    return len(seeds) if isinstance(seeds, list) else int(seeds)
+
+
+def _seeds(seeds) -> str:
+    return ", ".join(str(s) for s in seeds) if isinstance(seeds, list) else str(seeds)
 
 
 def table1(results: dict) -> tuple[str, dict]:
@@ -71,7 +95,7 @@ def table1(results: dict) -> tuple[str, dict]:
         cells = []
         for m in methods:
             for k in METRICS:
-                c = _fmt(agg[m][k], k)
+                c = _cell(agg[m], k)
                 cells.append(f"**{c}**" if best[k] and agg[m][k] == best[k][0] and len(methods) > 1 else c)
         name = f"{scene} ({_gt_short(s)})" if s["gt_kind"] == "reference" else scene
         lines.append("| " + " | ".join([name, _gt_short(s)] + cells) + " |")
@@ -79,6 +103,12 @@ def table1(results: dict) -> tuple[str, dict]:
         lines += ["", "Left out: " + "; ".join(f"{m} ({why})" for m, why in results["unavailable"].items())]
     lines += ["", "Ground truth per scene:", ""]
     lines += [f"- {scene}: {s['ground_truth']}" for scene, s in results["scenes"].items()]
+    if "aisdf-served" in methods:
+        lines += ["", "AiSDF served: the query service's default answer (`source: \"fused\"`), composed by "
+                  "`aisdf.query.answer.served_answer` from the network, the signed distance to the global surfels "
+                  "(within 2 m) and the mapper's measured points, as the service composes an exact answer; by "
+                  "default the service answers from its bake of that field (trilinear, within 5 mm where "
+                  "refined), not reproduced here."]
     lines += ["", "## Run details (seed 0)", "",
               "| Scene | Model | Frames seen | Keyframes | Steps | Compute (s) | Surfels | Up error (deg) |",
               "|---|---|---|---|---|---|---|---|"]
@@ -87,6 +117,31 @@ def table1(results: dict) -> tuple[str, dict]:
             cells = ["-" if r.get(k) is None else r[k] for k in ("keyframes", "steps", "surfels", "up_error_deg")]
             lines.append(f"| {scene} | {model} | {r['frames_seen']} / {s['frames']} | {cells[0]} | {cells[1]} | "
                          f"{r['compute_s']:.1f} | {cells[2]} | {cells[3]} |")
+    return "\n".join(lines) + "\n", data
+
+
+def table1b(results: dict) -> tuple[str, dict]:
+    """Table I's SDF error split by whether each point's nearest true surface was observed
+    (``evaluation``'s docstring), with the share of points in each."""
+    methods = results["methods"]
+    data: dict = {"title": "Table Ib", "methods": methods, "scenes": {}}
+    lines = ["# Table Ib: SDF error (cm) where the nearest true surface was observed, and where not", "",
+             "A point's nearest true surface point is p - s n (s the true distance, n its unit gradient); observed: "
+             "a measured depth point (any pixel of every 5th frame, back-projected) lies within 5 cm of it. "
+             "Shares: of the points of Table I." + (" Mean ± standard deviation over the seeds."
+                                                   if _nseeds(results["seeds"]) > 1 else ""), "",
+             "| Scene | Method | Observed: share (%) | Observed: SDF (cm) | Unobserved: share (%) | "
+             "Unobserved: SDF (cm) | All: SDF (cm) |", "|---|---|---|---|---|---|---|"]
+    for scene, s in results["scenes"].items():
+        data["scenes"][scene] = {}
+        for m in methods:
+            a = _agg([r["final"][m] for r in s["runs"] if m in r["final"]])
+            if "observed_share" not in a:
+                continue
+            data["scenes"][scene][m] = {k: a[k] for k in a if k.split("_std")[0] in SPLIT + ("sdf_error_cm",)}
+            lines.append(f"| {scene} | {LABELS.get(m, m)} | {_cell(a, 'observed_share', 1, 100)} | "
+                         f"{_cell(a, 'sdf_error_observed_cm', 2)} | {_cell(a, 'unobserved_share', 1, 100)} | "
+                         f"{_cell(a, 'sdf_error_unobserved_cm', 2)} | {_cell(a, 'sdf_error_cm', 2)} |")
     return "\n".join(lines) + "\n", data
 
 
@@ -121,16 +176,22 @@ def table3(results: dict) -> tuple[str, dict]:
     """Mean per-module runtime (ms) over scenes and seeds, per neural model; the voxel map's
     integration and ESDF update; the paper's RTX 3090 row for comparison."""
     per_model: dict[str, list[dict]] = {}
+    memory: dict[str, list[dict]] = {}
     for s in results["scenes"].values():
         for r in s["runs"]:
             for model, summ in r["models"].items():
                 per_model.setdefault(model, []).append(summ.get("timings_ms", {}))
+                if "memory_mb" in summ:
+                    memory.setdefault(model, []).append(summ["memory_mb"])
     data: dict = {"title": "Table III", "unit": "ms", "machine": results.get("machine", {}), "models": {},
                   "paper_rtx3090": PAPER_TABLE3}
     for model, ts in per_model.items():
         keys = sorted({k for t in ts for k in t})
         data["models"][model] = {k: float(np.mean([t[k] for t in ts if k in t])) for k in keys}
-    neural = {m: t for m, t in data["models"].items() if m != "voxblox"}
+    for model, ms in memory.items():
+        data["models"][model].update({f"{k}_mb": float(np.mean([x[k] for x in ms])) for k in ms[0]})
+    voxel = {m: t for m, t in data["models"].items() if m in MODELS and MODELS[m].kind == "voxel"}
+    neural = {m: t for m, t in data["models"].items() if m not in voxel}
     extra = sorted({k for t in neural.values() for k in t} - set(MODULES) - {"sum", "step_wall", "keyframe_wall"})
     cols = list(MODULES) + extra
     lines = ["# Table III: runtime per module (ms)", "",
@@ -146,10 +207,16 @@ def table3(results: dict) -> tuple[str, dict]:
         lines.append("| " + " | ".join([model] + cells + [f"**{t.get('sum', float('nan')):.1f}**"] + walls) + " |")
     lines.append("| paper (RTX 3090) | " + " | ".join(str(PAPER_TABLE3.get(c, "-")) for c in cols) +
                  f" | **{PAPER_TABLE3['sum']}** | - | - |")
-    if "voxblox" in data["models"]:
-        v = data["models"]["voxblox"]
-        lines += ["", "| Voxel map | Integrate (ms / frame) | ESDF update (ms, whole grid) |", "|---|---|---|",
-                  f"| voxblox | {v.get('integrate', float('nan')):.1f} | {v.get('esdf', float('nan')):.1f} |"]
+    if voxel:
+        lines += ["", "| Voxel map | Integrate (ms / frame) | ESDF update (ms, whole grid) | TSDF blocks (MB) | "
+                  "ESDF grids (MB) |", "|---|---|---|---|---|"]
+        nan = float("nan")
+        for m, v in voxel.items():
+            lines.append(f"| {LABELS.get(m, m)} | {v.get('integrate', nan):.1f} | {v.get('esdf', nan):.1f} | "
+                         f"{v.get('tsdf_mb', nan):.1f} | {v.get('esdf_mb', nan):.1f} |")
+        lines += ["", "Means over scenes and seeds. ESDF update: the whole dense grid, at every evaluation; ESDF "
+                  "grids: the distance field, its observed mask and its gradient grids (float32), over the scene's "
+                  "box."]
     return "\n".join(lines) + "\n", data
 
 
@@ -173,9 +240,9 @@ def write_json(path: Path, obj) -> None:
 
 
 def write_tables(out: Path, results: dict) -> dict[str, str]:
-    """table1/2/3 .md and .json under ``out``; returns the markdown by name."""
+    """table1/1b/2/3 .md and .json under ``out``; returns the markdown by name."""
     md = {}
-    for name, fn in (("table1", table1), ("table2", table2), ("table3", table3)):
+    for name, fn in (("table1", table1), ("table1b", table1b), ("table2", table2), ("table3", table3)):
         text, data = fn(results)
         (out / f"{name}.md").write_text(text)
         write_json(out / f"{name}.json", data)

@@ -2,11 +2,13 @@
 
     aisdf bench --quick --out results/quick
     aisdf bench --scenes atlanta replica-office 7scenes-redkitchen --out results/$(date +%F)
-    aisdf bench --mode realtime --scenes atlanta --methods voxblox isdf aisdf
+    aisdf bench --mode realtime --scenes atlanta --methods voxel-5cm isdf aisdf
+    aisdf bench --scenes manhattan atlanta stairs --seeds 0 1 2 --out results/seeds
 
 For every scene (and seed) the stream is replayed once through every model in lockstep
 (``methods.run_stream``); at checkpoints over sequence time every method is scored on the
-same points (``evaluation.EvalSet``); at the end the folder gets table1/2/3 .md/.json,
+same points (``evaluation.EvalSet``; at the end also split by whether each point's nearest
+true surface was observed, Table Ib); at the end the folder gets table1/1b/2/3 .md/.json,
 error_over_time_<scene>.png, sdf_slice_<scene>.png, meshes/<scene>/<method>.ply,
 results.json (everything measured) and config.json (the resolved configuration,
 versions, machine).
@@ -117,21 +119,22 @@ def run(cfg: BenchConfig, timer=time.perf_counter) -> dict:
     data = Path(cfg.data) if cfg.data else (data_root() if needs_data else None)
     scenes = {name: make_scene(name, cfg.opts_for(name), data) for name in cfg.scenes}
     results: dict = {"mode": cfg.mode, "mode_note": MODE_NOTES[cfg.mode], "profile": cfg.profile, "methods": methods,
-                     "unavailable": dropped, "n_points": cfg.n_points, "seeds": cfg.seeds, "machine": _machine(),
+                     "unavailable": dropped, "n_points": cfg.n_points, "seeds": cfg.seed_list, "machine": _machine(),
                      "scenes": {}}
     config: dict = {"command": sys.argv, "config": cfg.model_dump(mode="json"), "versions": _versions(),
                     "machine": results["machine"], "git": _git(), "unavailable": dropped,
                     "method_labels": {m: LABELS[m] for m in methods}, "scenes": {}, "models": {}}
-    total = sum(len(s) for s in scenes.values()) * cfg.seeds
+    seeds = cfg.seed_list
+    total = sum(len(s) for s in scenes.values()) * len(seeds)
     with Progress(total, enabled=cfg.progress) as bar:
         for name, scene in scenes.items():
             config["scenes"][name] = scene.describe()
             entry = {"ground_truth": scene.gt_label, "gt_kind": scene.gt_kind, "frames": len(scene), "runs": []}
             results["scenes"][name] = entry
-            for seed in range(cfg.seeds):
+            for seed in seeds:
                 bar.set_description(f"{name} seed {seed}")
                 run_ = _run_scene(cfg, scene, methods, _models_for(name, methods, cfg, atlanta_ok), seed, timer, bar,
-                                  out, artefacts=cfg.artefacts and seed == 0, config=config)
+                                  out, artefacts=cfg.artefacts and seed == seeds[0], config=config)
                 entry["runs"].append(run_)
     config["finished"] = time.strftime("%Y-%m-%dT%H:%M:%S")
     config["wall_s"] = round(time.time() - t_start, 1)
@@ -160,7 +163,7 @@ def _run_scene(cfg: BenchConfig, scene, methods, models, seed, timer, bar, out: 
     def on_checkpoint(i: int, t: float, seen: list[dict]) -> None:
         final = i == n - 1
         n_pts = cfg.n_points if final else min(cfg.n_points, cfg.n_points_checkpoint)
-        es = EvalSet(scene, seen, n_pts, np.random.default_rng([seed, i]))
+        es = EvalSet(scene, seen, n_pts, np.random.default_rng([seed, i]), split=final)
         row = {}
         for m in methods:
             model, view = METHODS[m]
@@ -228,10 +231,12 @@ def add_arguments(p) -> None:
     p.add_argument("--profile", choices=list(PROFILES), help="quick (CI), standard (CPU, default), paper (GPU)")
     p.add_argument("--quick", action="store_true", help="the quick profile (one small synthetic scene, ~2 min)")
     p.add_argument("--scenes", nargs="+", choices=list(SCENES), help="scenes (default: the profile's)")
-    p.add_argument("--methods", nargs="+", choices=list(METHODS), help="Table I columns (default: all four)")
+    p.add_argument("--methods", nargs="+", choices=list(METHODS), help="Table I columns (default: voxel maps at "
+                   "5 and 2 cm, iSDF, AiSDF w/o and w. explicit map, AiSDF served; voxblox: the paper's 5.5 cm)")
     p.add_argument("--ablation", nargs="*", help="scenes that also get Table II's models (none: no Table II)")
     p.add_argument("--mode", choices=["iterations", "realtime"], help="equal iterations (default) or real-time replay")
-    p.add_argument("--seeds", type=int, help="seeds per scene (tables give the mean)")
+    p.add_argument("--seeds", type=int, nargs="+", help="one number N: seeds 0..N-1; several: those seeds "
+                   "(e.g. --seeds 0 1 2); tables give mean ± standard deviation")
     p.add_argument("--out", help="results folder (default results/<date>-<time>)")
     p.add_argument("--data", help="shared data folder (default: AISDF_DATA, else ../shared/data)")
     p.add_argument("--cache", dest="cache_dir", help="cache for ground-truth grids and reference meshes "
@@ -254,6 +259,8 @@ def config_from_args(args) -> BenchConfig:
     cache = g("cache_dir") or str(Path.home() / ".cache" / "aisdf" / "bench")
     over = {k: g(k) for k in ("scenes", "methods", "ablation", "mode", "seeds", "data", "preset", "schedule_scale",
                               "frames", "n_points", "checkpoints", "threads", "slowdown")}
+    if isinstance(over["seeds"], list) and len(over["seeds"]) == 1:
+        over["seeds"] = over["seeds"][0]  # a count, as before
     over.update(out=out, cache_dir=cache)
     if g("no_artefacts"):
         over["artefacts"] = False

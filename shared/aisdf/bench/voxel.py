@@ -246,6 +246,16 @@ class VoxelEsdf:
             raise RuntimeError("call finalize() first")
         return self._esdf, self._origin * self.voxel_size
 
+    def memory_bytes(self) -> dict[str, int]:
+        """Bytes held: ``tsdf``, the allocated blocks (tsdf and weight, float32 per voxel);
+        ``esdf``, the dense distance field (float32), its observed mask and, once a gradient
+        was asked for, the three gradient grids (float32)."""
+        blocks = int(self._vbg.hashmap().size())
+        esdf = 0
+        if self._esdf is not None:
+            esdf = self._esdf.nbytes + self._observed.nbytes + (0 if self._grad is None else self._grad.nbytes)
+        return {"tsdf": blocks * BLOCK_RESOLUTION ** 3 * 2 * 4, "esdf": int(esdf)}
+
     def timing_summary(self) -> dict[str, float]:
         """Mean integrate ms/frame, last finalize ms, frames fused, voxels in the grid."""
         it, fi = self.timings["integrate_ms"], self.timings["finalize_ms"]
