@@ -8,13 +8,15 @@ For a batch ``{(sensor, frame_id): T_WC}`` (``aisdf.mapper.Mapper.repose``), bot
    coordinates, fitted on arrival) are moved rigidly with it. Keys the map does not hold
    (never sent, not stored because they added nothing new, evicted) are reported
    ``unknown`` and change nothing; a pose equal to the held one is ``unchanged``.
-2. The intake's knowledge is rebuilt from the stored keyframes, in arrival order, as it
-   was built: the observed space, the measured points, the keyframes' coverage (the
-   redundancy and eviction test) and the box (which only grows). A map built with the
-   right poses from the start has the same observed voxels and, bit for bit, the same
-   measured points. What evicted keyframes (or those the one network's store dropped)
-   added to the observed space and the measured points is lost: their poses cannot be
-   corrected, so what they gave is not kept at a place that may be wrong.
+2. The intake's knowledge follows. The measured points are pooled again from the stored
+   keyframes in arrival order, as they were (a map built with the right poses from the start
+   has the same points, bit for bit; the points evicted keyframes, or those the one network's
+   store dropped, gave are lost: their poses cannot be corrected, so nothing is kept at a place
+   that may be wrong). The observed space changes only where the moved keyframes' rays went:
+   the voxels they marked at their old poses are marked again by the stored keyframes whose
+   frusta reach them, and the moved keyframes mark theirs at their new poses (the same voxels
+   as a map built with these poses; what evicted keyframes marked elsewhere stays). The
+   coverage (the redundancy and eviction test) and the box take the moved keyframes again.
 3. The global surfel map is merged again from the stored keyframes' surfels (the surfels
    of evicted keyframes are lost with them). The Atlanta frame is kept: its directions come
    from many keyframes' normals and a correction rotates a few by little.
@@ -48,10 +50,10 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from ..codec import is_rigid
-from ..observed import ObservedSpace
+from ..geometry import valid_depth
+from ..observed import ObservedSpace, unpack_keys
 from ..structure.measured import MeasuredSurface
 from ..structure.surfel_types import Surfels
-from .coverage import KeyframeCoverage
 from .intake import grow_bounds
 
 SINGLE_STEPS = 0  # the one-network mapper: training steps taken at once after a correction
@@ -71,6 +73,7 @@ class ReposeResult:
     submaps: list[str] = field(default_factory=list)
     removed: list[str] = field(default_factory=list)  # submaps left with no keyframe
     reset: list[str] = field(default_factory=list)  # submaps whose network started again
+    old_poses: dict = field(default_factory=dict)  # key -> the pose it had (the reposed ones)
     timings_ms: dict[str, float] = field(default_factory=dict)
 
     def as_dict(self) -> dict:
@@ -118,18 +121,71 @@ def set_poses(frames: dict, corrections: dict[Key, np.ndarray], result: ReposeRe
         f.surfels = move_surfels(f.surfels, T @ np.linalg.inv(old))
         f.T_WC = T.copy()
         result.reposed.append(key)
+        result.old_poses[key] = old
 
 
-def rebuild_knowledge(intake, frames: list, timings: dict[str, float]) -> None:
-    """The intake's observed space, measured points, coverage and box from ``frames``
-    (stored ``Frame``s, arrival order), and the structure's global surfel map from their
-    surfels (module docstring, 2-3)."""
-    t = time.perf_counter()
+def _frustum_box(f, T: np.ndarray, max_depth: float, margin: float) -> tuple[np.ndarray, np.ndarray] | None:
+    """A world box holding every point ``ObservedSpace.add`` marks for the frame at pose ``T``:
+    its rays run from the camera centre through the image (a pyramid whose corners are the
+    image's corner rays) to at most the deepest valid depth plus the margin. None: no depth."""
+    d = f.metres()
+    ok = valid_depth(d, max_depth)
+    if not ok.any():
+        return None
+    reach = float(d[ok].max()) + margin
+    H, W = d.shape
+    K = np.asarray(f.K, np.float64)
+    u, v = np.array([-1.0, W, -1.0, W]), np.array([-1.0, -1.0, H, H])
+    dirs = np.stack([(u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1], np.ones(4)], -1)
+    pts = np.vstack([T[:3, 3], (dirs * reach) @ T[:3, :3].T + T[:3, 3]])
+    return pts.min(0), pts.max(0)
+
+
+def rebuild_observed(intake, frames: list, moved: dict[Key, np.ndarray]) -> ObservedSpace:
+    """The observed space with the keyframes ``moved`` (key -> old pose) at their new poses,
+    as ``ObservedSpace.add`` of ``frames`` (every stored keyframe) in any order gives it, but
+    computed where it can change only: the voxels the moved keyframes marked at their old
+    poses (``gone``) are dropped, then marked again by the stored keyframes whose frusta reach
+    them (``_frustum_box``), and the moved keyframes are added at their new poses. Voxels
+    outside ``gone`` stay as they are (also those an evicted keyframe marked)."""
     old = intake.observed
-    observed = ObservedSpace(old.voxel, old.margin, old.max_rays)
-    for f in frames:
-        observed.add(f.metres(), f.K, f.T_WC, intake.max_depth)
-    intake.observed = observed
+    make = lambda: ObservedSpace(old.voxel, old.margin, old.max_rays)  # noqa: E731
+    by_key = {f.key: f for f in frames}
+    tmp = make()
+    for key, T in moved.items():
+        tmp.add(by_key[key].metres(), by_key[key].K, T, intake.max_depth)
+    gone = tmp.keys
+    out = make()
+    out.load_state_dict({"voxel": old.voxel, "margin": old.margin, "keys": np.setdiff1d(old.keys, gone)})
+    if len(gone):
+        ijk = unpack_keys(gone)
+        lo, hi = ijk.min(0), ijk.max(0)
+        again = make()
+        for f in frames:
+            if f.key in moved:
+                continue
+            box = _frustum_box(f, np.asarray(f.T_WC, np.float64), intake.max_depth, old.margin)
+            if box is None:
+                continue
+            b_lo, b_hi = np.floor(box[0] / old.voxel) - 1, np.floor(box[1] / old.voxel) + 1
+            if np.all(b_lo <= hi) and np.all(b_hi >= lo):
+                again.add(f.metres(), f.K, f.T_WC, intake.max_depth)
+        back = again.keys[np.isin(again.keys, gone, assume_unique=True)]
+        out.load_state_dict({"voxel": old.voxel, "margin": old.margin, "keys": np.union1d(out.keys, back)})
+    for key in moved:
+        f = by_key[key]
+        out.add(f.metres(), f.K, f.T_WC, intake.max_depth)
+    return out
+
+
+def rebuild_knowledge(intake, frames: list, timings: dict[str, float], moved: dict[Key, np.ndarray]) -> None:
+    """The intake's observed space (``rebuild_observed``), measured points (all of them again,
+    from ``frames``: stored ``Frame``s in arrival order, so the sums are those of a map built
+    with these poses from the start, bit for bit), coverage and box (the moved keyframes'
+    parts again), and the structure's global surfel map from the frames' surfels (module
+    docstring, 2-3). ``moved``: key -> old pose of the keyframes re-posed."""
+    t = time.perf_counter()
+    intake.observed = rebuild_observed(intake, frames, moved)
     timings["observed"] = 1e3 * (time.perf_counter() - t)
     if intake.measured is not None:
         t = time.perf_counter()
@@ -142,12 +198,13 @@ def rebuild_knowledge(intake, frames: list, timings: dict[str, float]) -> None:
         intake.measured = measured
         timings["measured"] = 1e3 * (time.perf_counter() - t)
     t = time.perf_counter()
-    coverage = KeyframeCoverage(intake.coverage.policy, intake.coverage.max_depth)
-    bounds = intake.bounds
+    cov = intake.coverage
+    cov._last = None  # (its cache of the frame last tested: keyed by the frame object, whose pose moved)
     for f in frames:
-        coverage.add(f.key, f)
-        bounds = grow_bounds(bounds, replace(f, depth=f.metres()), intake.max_depth)
-    intake.coverage, intake.bounds = coverage, bounds
+        if f.key in moved:  # (a redundancy test does not depend on the views' order)
+            cov.remove(f.key)
+            cov.add(f.key, f)
+            intake.bounds = grow_bounds(intake.bounds, replace(f, depth=f.metres()), intake.max_depth)
     timings["coverage"] = 1e3 * (time.perf_counter() - t)
     if intake.structure is not None:
         t = time.perf_counter()
@@ -174,7 +231,8 @@ def repose_single(pipe, corrections: dict, steps: int = SINGLE_STEPS) -> ReposeR
     set_poses({sf.frame.key: sf for sf in pipe.trainer.store.keyframes}, corr, res)
     res.timings_ms["poses"] = 1e3 * (time.perf_counter() - t0)
     if res.reposed:
-        rebuild_knowledge(pipe.intake, [sf.frame for sf in pipe.trainer.store.keyframes], res.timings_ms)
+        rebuild_knowledge(pipe.intake, [sf.frame for sf in pipe.trainer.store.keyframes], res.timings_ms,
+                          res.old_poses)
         t = time.perf_counter()
         for _ in range(steps):
             pipe.step()
@@ -237,7 +295,7 @@ def repose_submaps(pipe, corrections: dict) -> ReposeResult:
     if not res.reposed:
         res.timings_ms["total"] = 1e3 * (time.perf_counter() - t0)
         return res
-    rebuild_knowledge(pipe.intake, [sf.frame for sf in pipe.frames.values()], res.timings_ms)
+    rebuild_knowledge(pipe.intake, [sf.frame for sf in pipe.frames.values()], res.timings_ms, res.old_poses)
     changed: set = set()
     resets: set = set()  # submaps one of whose keyframes moved beyond repose_reset_m
     if pipe.grid is not None:
