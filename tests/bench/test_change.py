@@ -42,7 +42,9 @@ def _result() -> dict:
         "date": "2026-12-05", "commit": "abc1234", "wall_s": 100.0,
         "args": {"building": "office", "seed": 0, "frames": 300, "preset": "cpu", "after_s": 10.0},
         "cart": {"standing": {"occupied": 0.85, "still_occupied": 0.9, "room_error_cm": 3.0},
-                 "watch": watch, "cleared_after_s": 5, "after": {"room_error_cm": 3.2}, "room_ratio": 3.2 / 3.0},
+                 "watch": watch, "cleared_after_s": 5, "after": {"room_error_cm": 3.2}, "room_ratio": 3.2 / 3.0,
+                 "first_empty_frame": 500, "first_empty_t_s": 30.0, "seen_empty_t_s": 42.0,
+                 "cleared_since_first_s": 3},
         "person": {"after_s": 10.0, "worst_below_m": -0.5, "occupied": 0.3},
         "drift": {"corrections_available": True, "ratio": 1.1,
                   "drift_end": {"error_cm": 9.0, "surfaces": [2, 1], "crossings": [1, 1]},
@@ -57,6 +59,7 @@ def test_report_gives_every_criterion_its_target_and_verdict():
     md = change.report(_result())
     assert "| cart: its volume answered occupied while it stands | 85.0 % | >= 80 % | yes |" in md
     assert "| cart: time until <= 5 % occupied | 5 s | <= 10 s | yes |" in md
+    assert "| (the same, from the first keyframe that saw it gone, 12 s before the last) | 3 s |  |  |" in md
     assert "3.00 -> 3.20 cm (x1.07) | <= x1.10 | yes |" in md
     assert "| -50.0 cm | >= -20 cm | no |" in md
     assert "3.30 vs 3.00 cm (x1.10) | <= x1.2 | yes |" in md
@@ -77,5 +80,6 @@ def test_quick_run_of_the_cart_and_the_parked_robot(tmp_path, capsys):
     res = json.loads((tmp_path / "change.json").read_text())
     c = res["cart"]
     assert c["keyframes"] > 10 and c["keyframes_seeing_empty"] > 0 and len(c["watch"]) == 9
+    assert c["first_empty_frame"] >= 420 and all(0 <= w["occupied"] <= 1 for w in c["clearing"])
     assert 0 <= c["standing"]["occupied"] <= 1 and c["standing"]["room_error_cm"] > 0
     assert res["parked"]["frames"] == 200 and "person" not in res and "drift" not in res
