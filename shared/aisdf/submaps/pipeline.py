@@ -134,7 +134,8 @@ class SubmapPipeline:
         best covered by the others is evicted (``evict.py``). Raises ValueError (and changes
         nothing) for one that cannot be used: a duplicate (sensor, frame_id), too few valid
         depth pixels, a mask of another shape."""
-        frame = self.intake.accept(kf, self.frames.__contains__)
+        frame = self.intake.accept(kf, self.frames.__contains__, self.frames.get)
+        self._cleared(self.intake.touched)
         if frame is None:
             return False
         t0 = time.perf_counter()
@@ -150,6 +151,23 @@ class SubmapPipeline:
         self.intake.timings["assign"].append(1e3 * (time.perf_counter() - t0))
         evict.bound(self)
         return True
+
+    def _cleared(self, touched: list[tuple[str, int]]) -> None:
+        """After a keyframe's rays cleared measured points and stored keyframes' pixels
+        (``aisdf.mapper.clearing``): the submaps whose published measured points may have
+        changed are published again, and those holding a keyframe that lost pixels forget
+        their loss estimate (replayed as new)."""
+        pts = self.intake.cleared_points
+        if self.grid is None or not (touched or len(pts)):
+            return
+        keys = set(touched)
+        for c, sm in self.submaps.items():
+            if len(pts) and self.grid.inside(c, pts, grow=self.grid.overlap_m).any():
+                sm.measured_changed = True
+            if keys:
+                for v in sm.trainer.store.keyframes:
+                    if v.frame.key in keys:
+                        v.loss = None
 
     def _maybe_make_grid(self, frame: Frame) -> None:
         s = self.sub_cfg

@@ -42,7 +42,7 @@ class SubmapPublisher:
         m = self.pipe.measured
         if m is None:
             return None
-        key = (len(m), int(m.counts.sum()))
+        key = (id(m), m.version)  # (a pose correction pools the points again, in a new pool)
         if self._measured_key != key:  # the points, once per new keyframe
             self._measured_pts, self._measured_key = m.points(), key
         pts = self._measured_pts
@@ -99,10 +99,12 @@ class SubmapPublisher:
         for sm in self.pipe.submaps.values():
             if sm.cell in self.pipe.retraining:  # a pose correction's fresh network: held until trained (repose.py)
                 continue
-            if changed_only and (sm.trainer.steps == sm.published_step or not self.due(sm, mark)):
+            if changed_only and not sm.measured_changed and (sm.trainer.steps == sm.published_step
+                                                             or not self.due(sm, mark)):
                 continue
             if mark:
                 sm.published_step, sm.version, sm.dirty_since = sm.trainer.steps, version, None
+                sm.measured_changed = False
             snap = self.submap_snapshot(sm, version, epoch)
             out.append((f"{keys.MAP_SUBMAPS}/{sm.id}", protocol.pack(snap.to_msg())))
         out.append((keys.MAP_INDEX, protocol.pack(self.index(version, epoch).to_msg())))
