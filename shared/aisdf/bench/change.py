@@ -240,6 +240,12 @@ def cart(args, out: Path) -> dict:
                            "still_box": np.round(still.size, 3).tolist(),
                            "still_occupied": float(np.mean(still_sdf < OCCUPIED_M))}
         st = rec["standing"]
+        # Pass 2's first keyframe sees the cart's space empty: a figure taken after it is not the
+        # standing cart's (the mapper trailed the walk by more than the pause: lengthen --pause-s).
+        st["before_removal"] = bool(c.get("frames", 0) < removed and c.get("acked", 0) <= before_removal)
+        if not st["before_removal"]:
+            _say(f"cart: WARNING: the pass-1 keyframes were acknowledged only at frame {c.get('frames')}, after the "
+                 f"removal (frame {removed}): this figure may already see pass 2")
         _say(f"cart: standing (frame {c.get('frames')}, map v{v}): {100 * st['occupied']:.1f} % of its volume "
              f"occupied (served sdf p10/p50/p90 {st['sdf_p10_p50_p90_m']} m; a box that never moved, "
              f"{st['still_box']} m: {100 * st['still_occupied']:.1f} %); the rest of the room "
@@ -485,7 +491,8 @@ def rows(res: dict) -> list[tuple[str, str, str, str]]:
     c = res.get("cart")
     if c:
         s = c["standing"]["occupied"]
-        out.append(("cart: its volume answered occupied while it stands", f"{100 * s:.1f} %", ">= 80 %",
+        late = "" if c["standing"].get("before_removal", True) else " (measured after the removal!)"
+        out.append((f"cart: its volume answered occupied while it stands{late}", f"{100 * s:.1f} %", ">= 80 %",
                     _yes(s >= 0.8)))
         out.append(("(beside it: a box of the office that never moved, answered occupied)",
                     f"{100 * c['standing']['still_occupied']:.1f} %", "", ""))
@@ -554,7 +561,8 @@ def main(argv: list[str] | None = None) -> dict:
                    "frames")
     p.add_argument("--building", default="office")
     p.add_argument("--frames", type=int, help="frames of one pass of the walk (default 900; --quick 300)")
-    p.add_argument("--pause-s", type=float, help="pause between the passes (default 15; --quick 4)")
+    p.add_argument("--pause-s", type=float, help="pause between the passes (default 30: the cpu mapper trails a "
+                   "walk by about 15 s on 2 cores; --quick 4)")
     p.add_argument("--watch-s", type=float, help="cart: seconds watched after it is seen gone (default 30; "
                    "--quick 8)")
     p.add_argument("--person-after-s", type=float, default=10.0)
@@ -567,7 +575,7 @@ def main(argv: list[str] | None = None) -> dict:
     p.add_argument("--out", default="runs/bench-change")
     a = p.parse_args(argv)
     q = a.quick
-    for name, full, quick in (("frames", 900, 300), ("pause_s", 15.0, 4.0), ("watch_s", 30.0, 8.0),
+    for name, full, quick in (("frames", 900, 300), ("pause_s", 30.0, 4.0), ("watch_s", 30.0, 8.0),
                               ("after_s", 60.0, 10.0), ("parked_frames", 3600, 200)):
         if getattr(a, name) is None:
             setattr(a, name, quick if q else full)
