@@ -42,7 +42,10 @@ def unpack_keys(keys: np.ndarray) -> np.ndarray:
 
 
 class ObservedSpace:
-    """The set of observed voxels, grown one depth image at a time."""
+    """The set of observed voxels, grown one depth image at a time. Each voxel also counts
+    the images that marked it, so an image can be taken back out (``remove``: a keyframe
+    re-posed by a pose correction, protocol 1.11); ``counts`` None (a checkpoint from before
+    the counts) cannot."""
 
     def __init__(self, voxel: float = 0.1, margin: float = 0.15, max_rays: int = 6000):
         if voxel <= 0 or margin < 0:
@@ -51,13 +54,15 @@ class ObservedSpace:
         self.margin = float(margin)
         self.max_rays = int(max_rays)
         self.keys = np.zeros(0, np.int64)  # sorted, unique
+        self.counts: np.ndarray | None = np.zeros(0, np.uint32)  # images marking each voxel (None: unknown)
         self._msg: dict | None = None  # the grid message of the current keys (built once per change)
 
     def __len__(self) -> int:
         return len(self.keys)
 
-    def add(self, depth: np.ndarray, K: np.ndarray, T_WC: np.ndarray, max_depth: float = 12.0) -> int:
-        """Mark what one depth image (metres, 0 = none) saw; returns the number of new voxels."""
+    def marks(self, depth: np.ndarray, K: np.ndarray, T_WC: np.ndarray, max_depth: float = 12.0) -> np.ndarray:
+        """The sorted voxel keys one depth image (metres, 0 = none) marks: its rays, to the
+        measured surface and ``margin`` past it."""
         depth = np.asarray(depth, dtype=np.float64)
         H, W = depth.shape
         # Rays a little closer than a voxel apart at 4 m, and no more than max_rays of them.
@@ -69,7 +74,7 @@ class ObservedSpace:
         ok = valid_depth(d, max_depth)
         u, v, d = u[ok], v[ok], d[ok]
         if not len(d):
-            return 0
+            return np.zeros(0, np.int64)
         dirs = np.stack([(u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1], np.ones_like(d)], axis=-1)
         norm = np.linalg.norm(dirs, axis=1)
         length = d * norm + self.margin  # along the ray, to the surface and past it
@@ -81,20 +86,52 @@ class ObservedSpace:
         s = (np.arange(len(ray)) - np.repeat(first, n)) * step
         s = np.minimum(s, np.repeat(length, n))
         pts = T_WC[:3, 3] + dirs_W[ray] * s[:, None]
-        new = np.unique(pack_keys(np.floor(pts / self.voxel).astype(np.int64)))
+        return np.unique(pack_keys(np.floor(pts / self.voxel).astype(np.int64)))
+
+    def add(self, depth: np.ndarray, K: np.ndarray, T_WC: np.ndarray, max_depth: float = 12.0) -> int:
+        """Mark what one depth image (metres, 0 = none) saw; returns the number of new voxels."""
+        new = self.marks(depth, K, T_WC, max_depth)
+        if not len(new):
+            return 0
         # Only the voxels not yet held are inserted, in order: binary searches into the held keys
         # and one copy, not a sort of everything held (which grew with the building).
         if len(self.keys):
             i = np.searchsorted(self.keys, new)
             held = self.keys[np.minimum(i, len(self.keys) - 1)] == new
+            if self.counts is not None:
+                self.counts[i[held]] += 1
             new, i = new[~held], i[~held]
             if len(new):
                 self.keys = np.insert(self.keys, i, new)
+                if self.counts is not None:
+                    self.counts = np.insert(self.counts, i, np.ones(len(new), np.uint32))
         else:
             self.keys = new
+            if self.counts is not None:
+                self.counts = np.ones(len(new), np.uint32)
         if len(new):
             self._msg = None
         return len(new)
+
+    def remove(self, depth: np.ndarray, K: np.ndarray, T_WC: np.ndarray, max_depth: float = 12.0) -> int:
+        """Take back what ``add`` of the same image marked (the same depth, K and pose): each
+        voxel it marked counts one image less and goes when none is left. Returns the number of
+        voxels gone. ValueError without counts (``counts`` None)."""
+        if self.counts is None:
+            raise ValueError("this observed space has no per-voxel counts (a checkpoint from before them)")
+        old = self.marks(depth, K, T_WC, max_depth)
+        if not len(old) or not len(self.keys):
+            return 0
+        i = np.searchsorted(self.keys, old)
+        held = self.keys[np.minimum(i, len(self.keys) - 1)] == old
+        i = i[held]
+        self.counts[i] -= np.minimum(self.counts[i], 1)
+        gone = self.counts == 0
+        n = int(gone.sum())
+        if n:
+            self.keys, self.counts = self.keys[~gone], self.counts[~gone]
+            self._msg = None
+        return n
 
     def contains(self, points: np.ndarray) -> np.ndarray:
         """(N,) bool: is each world point in an observed voxel."""
@@ -105,7 +142,7 @@ class ObservedSpace:
         return self.keys[i] == k
 
     def nbytes(self) -> int:
-        return int(self.keys.nbytes)
+        return int(self.keys.nbytes + (0 if self.counts is None else self.counts.nbytes))
 
     def grid(self, keep=None) -> "ObservedGrid | None":
         """The occupancy grid of the observed voxels; ``keep(centres (N, 3)) -> (N,) bool``
@@ -130,11 +167,17 @@ class ObservedSpace:
         return self._msg
 
     def state_dict(self) -> dict:
-        return {"voxel": self.voxel, "margin": self.margin, "keys": self.keys.copy()}
+        return {"voxel": self.voxel, "margin": self.margin, "keys": self.keys.copy(),
+                "counts": None if self.counts is None else self.counts.copy()}
 
     def load_state_dict(self, d: dict) -> None:
+        """``state_dict``'s space; one without ``counts`` (before 1.11) has none (``remove`` refuses)."""
         self.voxel, self.margin = float(d["voxel"]), float(d["margin"])
         self.keys = np.asarray(d["keys"], np.int64)
+        c = d.get("counts")
+        self.counts = None if c is None else np.asarray(c, np.uint32).reshape(-1)
+        if self.counts is not None and len(self.counts) != len(self.keys):
+            raise ValueError("observed space state: one count per key")
         self._msg = None
 
 

@@ -132,3 +132,35 @@ def test_networks_start_again_only_for_a_large_correction(seq):
     rep = p.repose({("depth", 56): wrong(seq.frame(56)["T_WC"])})  # 1.2 m: they start again
     assert rep["reset"] and all(p.submaps[c].trainer.steps == 0 and p.retraining[c] == 3 for c in p.submaps
                                 if p.submaps[c].id in rep["reset"])
+
+
+def test_observed_space_counts_take_an_image_back_out(seq):
+    from aisdf.observed import ObservedSpace
+
+    a, b = seq.frame(0), seq.frame(40)
+    both, only_b = ObservedSpace(), ObservedSpace()
+    for f in (a, b):
+        both.add(f["depth"], f["K"], f["T_WC"])
+    only_b.add(b["depth"], b["K"], b["T_WC"])
+    assert both.remove(a["depth"], a["K"], a["T_WC"]) > 0
+    np.testing.assert_array_equal(both.keys, only_b.keys)
+    np.testing.assert_array_equal(both.counts, only_b.counts)
+    back = ObservedSpace()
+    back.load_state_dict(both.state_dict())
+    np.testing.assert_array_equal(back.counts, both.counts)
+    old = {k: v for k, v in both.state_dict().items() if k != "counts"}  # a checkpoint from before 1.11
+    back.load_state_dict(old)
+    assert back.counts is None
+    with pytest.raises(ValueError, match="no per-voxel counts"):
+        back.remove(b["depth"], b["K"], b["T_WC"])
+
+
+def test_a_correction_without_counts_marks_the_space_again(seq):
+    right = build(seq, "single")
+    p = build(seq, "single", WRONG)
+    state = p.observed.state_dict()
+    del state["counts"]  # restored from a checkpoint from before the counts
+    p.observed.load_state_dict(state)
+    p.repose(corrections(seq))
+    assert p.observed.counts is None
+    np.testing.assert_array_equal(p.observed.keys, right.observed.keys)

@@ -8,15 +8,14 @@ For a batch ``{(sensor, frame_id): T_WC}`` (``aisdf.mapper.Mapper.repose``), bot
    coordinates, fitted on arrival) are moved rigidly with it. Keys the map does not hold
    (never sent, not stored because they added nothing new, evicted) are reported
    ``unknown`` and change nothing; a pose equal to the held one is ``unchanged``.
-2. The intake's knowledge follows. The measured points are pooled again from the stored
-   keyframes in arrival order, as they were (a map built with the right poses from the start
-   has the same points, bit for bit; the points evicted keyframes, or those the one network's
-   store dropped, gave are lost: their poses cannot be corrected, so nothing is kept at a place
-   that may be wrong). The observed space changes only where the moved keyframes' rays went:
-   the voxels they marked at their old poses are marked again by the stored keyframes whose
-   frusta reach them, and the moved keyframes mark theirs at their new poses (the same voxels
-   as a map built with these poses; what evicted keyframes marked elsewhere stays). The
-   coverage (the redundancy and eviction test) and the box take the moved keyframes again.
+2. The intake's knowledge follows, where the moved keyframes were and are: the measured
+   points of the voxels their pixels fall in (at the old pose or the new) are pooled again
+   from the stored keyframes whose frusta reach them (``rebuild_measured``: the same sums, bit
+   for bit, as a map built with these poses from the start); the observed space takes their
+   old marks out and marks them again at the new poses (``rebuild_observed``: the same
+   voxels); the coverage (the redundancy and eviction test) and the box take them again.
+   What evicted keyframes (or those the one network's store dropped) gave stays, except in
+   the voxels pooled again, where it is lost: their poses cannot be corrected.
 3. The global surfel map is merged again from the stored keyframes' surfels (the surfels
    of evicted keyframes are lost with them). The Atlanta frame is kept: its directions come
    from many keyframes' normals and a correction rotates a few by little.
@@ -50,8 +49,8 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from ..codec import is_rigid
-from ..geometry import valid_depth
-from ..observed import ObservedSpace, unpack_keys
+from ..geometry import backproject, transform, valid_depth
+from ..observed import ObservedSpace, pack_keys, unpack_keys
 from ..structure.measured import MeasuredSurface
 from ..structure.surfel_types import Surfels
 from .intake import grow_bounds
@@ -143,14 +142,25 @@ def _frustum_box(f, T: np.ndarray, max_depth: float, margin: float) -> tuple[np.
 
 def rebuild_observed(intake, frames: list, moved: dict[Key, np.ndarray]) -> ObservedSpace:
     """The observed space with the keyframes ``moved`` (key -> old pose) at their new poses,
-    as ``ObservedSpace.add`` of ``frames`` (every stored keyframe) in any order gives it, but
-    computed where it can change only: the voxels the moved keyframes marked at their old
-    poses (``gone``) are dropped, then marked again by the stored keyframes whose frusta reach
-    them (``_frustum_box``), and the moved keyframes are added at their new poses. Voxels
-    outside ``gone`` stay as they are (also those an evicted keyframe marked)."""
+    as ``ObservedSpace.add`` of ``frames`` (every stored keyframe) in any order gives it. With
+    per-voxel counts (since 1.11) each moved keyframe's marks at its old pose are taken out
+    (``ObservedSpace.remove``) and marked at its new pose: the cost of the moved keyframes
+    alone. Without (a space restored from an older checkpoint) the voxels the moved keyframes
+    marked at their old poses (``gone``) are dropped, marked again by the stored keyframes
+    whose frusta reach them (``_frustum_box``), and the moved keyframes are added at their new
+    poses. Either way voxels no moved keyframe marked stay as they are (also those an evicted
+    keyframe marked). A stored keyframe whose pixels newer rays cleared (``clearing``) takes
+    out only the marks of the pixels it still holds."""
     old = intake.observed
-    make = lambda: ObservedSpace(old.voxel, old.margin, old.max_rays)  # noqa: E731
     by_key = {f.key: f for f in frames}
+    if old.counts is not None:  # each voxel counts the images marking it: take the old marks out
+        for key, T in moved.items():
+            f = by_key[key]
+            d = f.metres()
+            old.remove(d, f.K, T, intake.max_depth)
+            old.add(d, f.K, f.T_WC, intake.max_depth)
+        return old
+    make = lambda: ObservedSpace(old.voxel, old.margin, old.max_rays)  # noqa: E731
     tmp = make()
     for key, T in moved.items():
         tmp.add(by_key[key].metres(), by_key[key].K, T, intake.max_depth)
@@ -178,6 +188,53 @@ def rebuild_observed(intake, frames: list, moved: dict[Key, np.ndarray]) -> Obse
     return out
 
 
+def _voxel_keys(f, T: np.ndarray, m: MeasuredSurface) -> tuple[np.ndarray, np.ndarray]:
+    """(the frame's depth with 0 where invalid, the voxel key of each of its pixels, -1 where
+    none) as ``MeasuredSurface.add`` pools them at pose ``T``."""
+    d = np.asarray(f.metres(), np.float64)
+    ok = valid_depth(d, m.max_depth)
+    k = np.full(d.shape, -1, np.int64)
+    if ok.any():
+        P = transform(np.asarray(T, np.float64), backproject(d, np.asarray(f.K, np.float64))[ok])
+        k[ok] = pack_keys(np.floor(P / m.voxel).astype(np.int64))
+    return np.where(ok, d, 0.0), k
+
+
+def rebuild_measured(m: MeasuredSurface, frames: list, moved: dict[Key, np.ndarray]) -> MeasuredSurface:
+    """The measured points with the keyframes ``moved`` (key -> old pose) at their new poses.
+    Only the voxels a moved keyframe's pixels fall in, at its old pose or its new one, change:
+    they are pooled again from every stored keyframe (``frames``, arrival order) whose frustum
+    reaches them, with only its pixels in those voxels, so each such voxel's sums are added in
+    the order and with the partial sums of a map built with these poses from the start (the
+    same floats, bit for bit); every other voxel keeps its sums (evicted keyframes' included)."""
+    by_key = {f.key: f for f in frames}
+    touched = []
+    for key, T in moved.items():
+        touched += [_voxel_keys(by_key[key], T, m)[1], _voxel_keys(by_key[key], by_key[key].T_WC, m)[1]]
+    touched = np.unique(np.concatenate([k[k >= 0] for k in touched])) if touched else np.zeros(0, np.int64)
+    out = MeasuredSurface(m.voxel, m.min_hits, m.max_depth)
+    if not len(touched):
+        return m
+    ijk = unpack_keys(touched)
+    lo, hi = ijk.min(0) - 1, ijk.max(0) + 1
+    for f in frames:
+        T = np.asarray(f.T_WC, np.float64)
+        box = _frustum_box(f, T, m.max_depth, 0.0)
+        if box is None or not (np.all(np.floor(box[0] / m.voxel) <= hi) and np.all(np.floor(box[1] / m.voxel) >= lo)):
+            continue
+        d, k = _voxel_keys(f, T, m)
+        keep = np.isin(k, touched)
+        if keep.any():
+            out.add(np.where(keep, d, 0.0), f.K, T)
+    stay = ~np.isin(m.keys, touched, assume_unique=True)
+    keys = np.concatenate([m.keys[stay], out.keys])
+    order = np.argsort(keys, kind="stable")
+    return MeasuredSurface.from_state_dict({
+        "voxel": m.voxel, "min_hits": m.min_hits, "max_depth": m.max_depth, "keys": keys[order],
+        "sums": np.concatenate([m.sums[stay], out.sums])[order],
+        "counts": np.concatenate([m.counts[stay], out.counts])[order]})
+
+
 def rebuild_knowledge(intake, frames: list, timings: dict[str, float], moved: dict[Key, np.ndarray]) -> None:
     """The intake's observed space (``rebuild_observed``), measured points (all of them again,
     from ``frames``: stored ``Frame``s in arrival order, so the sums are those of a map built
@@ -190,9 +247,7 @@ def rebuild_knowledge(intake, frames: list, timings: dict[str, float], moved: di
     if intake.measured is not None:
         t = time.perf_counter()
         m = intake.measured
-        measured = MeasuredSurface(m.voxel, m.min_hits, m.max_depth)
-        for f in frames:
-            measured.add(f.metres(), f.K, f.T_WC)
+        measured = rebuild_measured(m, frames, moved)
         if hasattr(m, "version"):  # a change count readers compare: it moves on, never back
             measured.version = m.version + 1
         intake.measured = measured
