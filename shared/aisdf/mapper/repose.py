@@ -16,9 +16,11 @@ For a batch ``{(sensor, frame_id): T_WC}`` (``aisdf.mapper.Mapper.repose``), bot
    voxels); the coverage (the redundancy and eviction test) and the box take them again.
    What evicted keyframes (or those the one network's store dropped) gave stays, except in
    the voxels pooled again, where it is lost: their poses cannot be corrected.
-3. The global surfel map is merged again from the stored keyframes' surfels (the surfels
-   of evicted keyframes are lost with them). The Atlanta frame is kept: its directions come
-   from many keyframes' normals and a correction rotates a few by little.
+3. The global surfel map is merged again where the moved keyframes' surfels were
+   (``rebuild_surfels``): the global surfels they had merged into go, and the stored
+   keyframes' surfels there (the moved ones at their new poses) are merged in again. The
+   Atlanta frame is kept: its directions come from many keyframes' normals and a correction
+   rotates a few by little.
 4. Networks. The submap mapper gives each corrected keyframe to the submaps it observes
    under its new pose (the rule of ``SubmapPipeline._assign``, with new pixel masks), takes
    it out of those it no longer observes, and keeps every store in arrival order. A submap
@@ -235,6 +237,56 @@ def rebuild_measured(m: MeasuredSurface, frames: list, moved: dict[Key, np.ndarr
         "counts": np.concatenate([m.counts[stay], out.counts])[order]})
 
 
+def _surfel_boxes(S: Surfels, grow: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+    """(N, 3) world boxes around N rectangular surfels, grown by ``grow``."""
+    half = (np.abs(S.axis1) * S.extent[:, :1] + np.abs(S.axis2) * S.extent[:, 1:2]) / 2 + grow
+    return S.center - half, S.center + half
+
+
+def _meets(lo: np.ndarray, hi: np.ndarray, blo: np.ndarray, bhi: np.ndarray) -> np.ndarray:
+    """(N,) does box i (lo, hi) meet any of the boxes (blo, bhi)?"""
+    if not len(lo) or not len(blo):
+        return np.zeros(len(lo), bool)
+    return np.any(np.all((lo[:, None] <= bhi[None]) & (hi[:, None] >= blo[None]), axis=-1), axis=1)
+
+
+def rebuild_surfels(structure, frames: list, moved: dict[Key, np.ndarray]) -> None:
+    """The global surfel map with the keyframes ``moved`` (key -> old pose) at their new poses,
+    merged again where they were: the global surfels that meet a moved keyframe's surfels at
+    its old pose (their boxes grown by the merge's tolerances) go, and the stored keyframes'
+    surfels that meet what went (the moved keyframes' at their new poses, all of them) are
+    merged in again, in arrival order. Elsewhere the map stays as it is (also what evicted
+    keyframes gave, and what free space cleared)."""
+    m = structure.map
+    cfg = m.config
+    grow = cfg.touch_tol + cfg.offset_tol
+    by_key = {f.key: f for f in frames}
+    old = []
+    for key, T_old in moved.items():
+        f = by_key[key]
+        if f.surfels is not None and len(f.surfels):
+            old.append(move_surfels(f.surfels, T_old @ np.linalg.inv(np.asarray(f.T_WC, np.float64))))
+    if old and len(m):
+        G = m.surfels()
+        o_lo, o_hi = _surfel_boxes(Surfels.concat(old), grow)
+        hit = _meets(*_surfel_boxes(G), o_lo, o_hi)
+        r_lo, r_hi = _surfel_boxes(G[hit], grow)
+        m.remove(hit)
+    else:
+        r_lo = r_hi = np.zeros((0, 3))
+    produced = m.n_produced
+    for f in frames:
+        S = f.surfels
+        if S is None or not len(S):
+            continue
+        if f.key not in moved:
+            S = S[_meets(*_surfel_boxes(S), r_lo, r_hi)]
+        if len(S):
+            m.add(S)
+    m.n_produced = produced
+    structure._aligned = None  # the realigned copy of the old map
+
+
 def rebuild_knowledge(intake, frames: list, timings: dict[str, float], moved: dict[Key, np.ndarray]) -> None:
     """The intake's observed space (``rebuild_observed``), measured points (all of them again,
     from ``frames``: stored ``Frame``s in arrival order, so the sums are those of a map built
@@ -263,14 +315,7 @@ def rebuild_knowledge(intake, frames: list, timings: dict[str, float], moved: di
     timings["coverage"] = 1e3 * (time.perf_counter() - t)
     if intake.structure is not None:
         t = time.perf_counter()
-        st = intake.structure
-        old_map = st.map
-        st.map = type(old_map)(old_map.config)
-        for f in frames:
-            if f.surfels is not None and len(f.surfels):
-                st.map.add(f.surfels)
-        st.map.n_produced = old_map.n_produced
-        st._aligned = None  # the realigned copy of the old map
+        rebuild_surfels(intake.structure, frames, moved)
         timings["surfels"] = 1e3 * (time.perf_counter() - t)
 
 
