@@ -398,6 +398,10 @@ class MapperNode:
     def stop(self) -> None:
         self._stop.set()
         self._thread.join(timeout=30)
+        while self._pose_jobs:  # never applied: their senders are told at once
+            job = self._pose_jobs.popleft()
+            job["error"] = protocol.ProtocolError("busy", "the mapper is stopping; the corrections were not applied")
+            job["done"].set()
         for d in self._decls:
             d.undeclare()
         self.save_checkpoint()

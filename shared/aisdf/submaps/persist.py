@@ -22,7 +22,8 @@ from .submap import Submap
 CHECKPOINT_FORMAT = "aisdf-submaps-checkpoint"
 # 2: keyframes sent as <u2 are written raw (depth_raw, depth_scale; depth None); 1 still loads.
 # Optional keys since 1.10 (absent: defaults, the pool rebuilt from the keyframes): "keyframes"
-# (the policy), "redundant", "evicted", "measured" (the pool: evicted keyframes' points stay).
+# (the policy), "redundant", "evicted", "measured" (the pool: evicted keyframes' points stay);
+# since 1.11 "retraining" (submaps a pose correction changed, owed steps before publication).
 CHECKPOINT_VERSION = 2
 
 
@@ -54,6 +55,7 @@ def checkpoint(pipe) -> dict:
         "observed": pipe.observed.state_dict(),
         "keyframes": pipe.kf_policy.model_dump(mode="json"), "redundant": pipe.intake.redundant,
         "evicted": pipe.evicted, "measured": None if pipe.measured is None else pipe.measured.state_dict(),
+        "retraining": [[list(c), int(n)] for c, n in pipe.retraining.items()],
     }
 
 
@@ -77,6 +79,7 @@ def restore(cls, d: dict):
             p.measured.add(f.depth, f.K, f.T_WC)
     p.intake.redundant = int(d.get("redundant", 0))
     p.evicted = int(d.get("evicted", 0))
+    p.retraining = {tuple(int(x) for x in c): int(n) for c, n in d.get("retraining", [])}  # 1.11, optional
     if d.get("grid") is not None:
         p.grid = SubmapGrid.from_msg(d["grid"])
     p._waiting = [p.frames[(s, int(i))] for s, i in d.get("waiting", [])]
