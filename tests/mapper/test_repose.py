@@ -176,3 +176,13 @@ def test_a_correction_without_counts_marks_the_space_again(seq):
     p.repose(corrections(seq))
     assert p.observed.counts is None
     np.testing.assert_array_equal(p.observed.keys, right.observed.keys)
+
+
+def test_a_batch_moving_most_of_the_map_pools_every_point_again(seq, monkeypatch):
+    import aisdf.mapper.repose as repose
+
+    monkeypatch.setattr(repose, "FULL_SHARE", 0.0)
+    right = build(seq, "single")
+    p = build(seq, "single", WRONG)
+    p.repose(corrections(seq))
+    assert_same_knowledge(right, p)

@@ -58,6 +58,7 @@ from ..structure.surfel_types import Surfels
 from .intake import grow_bounds
 
 SINGLE_STEPS = 0  # the one-network mapper: training steps taken at once after a correction
+FULL_SHARE = 0.25  # a batch moving more than this share of the stored keyframes pools every point again
 SAME_POSE_ATOL = 1e-9  # a pose within this (every matrix entry) of the held one is unchanged
 
 Key = tuple[str, int]
@@ -208,8 +209,15 @@ def rebuild_measured(m: MeasuredSurface, frames: list, moved: dict[Key, np.ndarr
     they are pooled again from every stored keyframe (``frames``, arrival order) whose frustum
     reaches them, with only its pixels in those voxels, so each such voxel's sums are added in
     the order and with the partial sums of a map built with these poses from the start (the
-    same floats, bit for bit); every other voxel keeps its sums (evicted keyframes' included)."""
+    same floats, bit for bit); every other voxel keeps its sums (evicted keyframes' included).
+    A batch that moves more than ``FULL_SHARE`` of the keyframes pools every point again from
+    the stored keyframes (cheaper then; what evicted keyframes gave is lost everywhere)."""
     by_key = {f.key: f for f in frames}
+    if len(moved) > FULL_SHARE * len(frames):  # most of the map moved: pooled again from every keyframe
+        out = MeasuredSurface(m.voxel, m.min_hits, m.max_depth)
+        for f in frames:
+            out.add(f.metres(), f.K, f.T_WC)
+        return out
     touched = []
     for key, T in moved.items():
         touched += [_voxel_keys(by_key[key], T, m)[1], _voxel_keys(by_key[key], by_key[key].T_WC, m)[1]]
