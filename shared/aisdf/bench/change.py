@@ -243,7 +243,7 @@ def cart(args, out: Path) -> dict:
                            "still_occupied": float(np.mean(still_sdf < OCCUPIED_M))}
         st = rec["standing"]
         # Pass 2's first keyframe sees the cart's space empty: a figure taken after it is not the
-        # standing cart's (the mapper trailed the walk by more than the pause: lengthen --pause-s).
+        # standing cart's (the mapper trailed the walk by more than the pause's first two thirds).
         st["before_removal"] = bool(c.get("frames", 0) < removed)
         if not st["before_removal"]:
             _say(f"cart: WARNING: pass 1's keyframes were acknowledged only at frame {c.get('frames')}, after the "
@@ -563,8 +563,7 @@ def main(argv: list[str] | None = None) -> dict:
                    "frames")
     p.add_argument("--building", default="office")
     p.add_argument("--frames", type=int, help="frames of one pass of the walk (default 900; --quick 300)")
-    p.add_argument("--pause-s", type=float, help="pause between the passes (default 30: the cpu mapper trails a "
-                   "walk by about 15 s on 2 cores; --quick 4)")
+    p.add_argument("--pause-s", type=float, help="pause between the passes (default 30; --quick 4)")
     p.add_argument("--watch-s", type=float, help="cart: seconds watched after it is seen gone (default 30; "
                    "--quick 8)")
     p.add_argument("--person-after-s", type=float, default=10.0)
