@@ -245,6 +245,7 @@ class MapperNode:
             with self.train_lock:
                 self._add_pending()
                 if self._pose_jobs:
+                    self._add_pending()  # keyframes that came in meanwhile: before their corrections
                     self._apply_poses()
                     last_pub, dirty = time.monotonic(), False
                 pause = 0.0 if self.pipeline.ready else self.cfg.idle_sleep_s
