@@ -8,11 +8,12 @@ The keyframes the frontend selects are known here by running the same selection 
 same frames; a keyframe counts as in the map once the frontend has it acknowledged.
 
 * ``cart``: a cart (0.8 x 0.6 x 1.0 m) stands in the office during the walk's first pass,
-  and is gone for its second pass over the same path. At the end of the pause between the
-  passes: the share of a 5 cm lattice inside its box answered occupied (served sdf < 5 cm;
-  target >= 80 %; the lattice's points within 10 cm of the floor are left out: they are
-  that near a surface with or without the cart). After the last keyframe that saw its space empty is in the map: that
-  share every second for ``--watch-s``, and the time until it is <= 5 % (target <= 10 s);
+  and is gone for its second pass over the same path. Two thirds into the pause between
+  the passes (``--pause-s``, 30 s): the share of a 5 cm lattice inside its box answered
+  occupied (served sdf < 5 cm; target >= 80 %; the lattice's points within 10 cm of the
+  floor are left out: they are that near a surface with or without the cart). After the
+  last keyframe that saw its space empty is in the map: that share every second for
+  ``--watch-s`` (30 s), and the time until it is <= 5 % (target <= 10 s);
   also every second from the first keyframe that saw its space empty, and that time from it.
   The rest of the room's mean |served - truth| (points along the first pass's keyframe rays,
   as ``metrics.eval_points`` draws them, more than 0.3 m from the cart and where the cart is
