@@ -7,7 +7,9 @@ sent tells the mapper their new poses, and the map follows::
     reply["reposed"], reply["unknown"]     # moved; not in the map (left as they are)
 
 ``session`` is an open Zenoh session (``aisdf.transport.open_session``). The mapper applies
-the batch between two training steps and answers once the corrected map is published.
+the batch between two training steps and answers once the corrected map is published: about
+a second for a few keyframes of a small map, tens of seconds for half of a 400-keyframe map on
+2 cores (docs/experiments/pose-corrections.md); give a large batch a larger ``timeout``.
 A mapper before 1.11 has no ``control/mapper/poses``: nobody answers and this raises
 ``TimeoutError``; the map keeps the poses the keyframes came with.
 """
