@@ -112,6 +112,15 @@ BREAKAGES = [
              '            log.exception("internal error answering a request")\n'
              '            self._reply_err(q, protocol.ProtocolError("no_map",',
              ("tests/services/test_sdf_client.py",)),
+    Breakage("clearing-off", "free space never clears (the default turned off)",
+             "shared/aisdf/mapper/coverage.py", "clear_free_space: bool = Field(True,",
+             "clear_free_space: bool = Field(False,", ("tests/mapper/test_clearing.py",)),
+    Breakage("clearing-keeps-pixels", "stored keyframes keep the pixels newer rays passed through",
+             "shared/aisdf/mapper/clearing.py", "    raw[v[gone], u[gone]] = 0\n", "",
+             ("tests/mapper/test_clearing.py",)),
+    Breakage("cleared-not-republished", "a submap whose measured points were cleared waits for training",
+             "shared/aisdf/submaps/publish.py", "if changed_only and not sm.measured_changed and (",
+             "if changed_only and (", ("tests/mapper/test_clearing.py",)),
 ]
 
 
