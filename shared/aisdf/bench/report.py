@@ -78,7 +78,9 @@ def _nseeds(seeds) -> int:
 
 
 def _seeds(seeds) -> str:
-    return ", ".join(str(s) for s in seeds) if isinstance(seeds, list) else str(seeds)
+    if not isinstance(seeds, list):
+        return str(seeds)
+    return f"{len(seeds)} ({', '.join(str(s) for s in seeds)})"
 
 
 def table1(results: dict) -> tuple[str, dict]:
