@@ -145,3 +145,18 @@ def test_methods_table_lists_the_new_columns():
     assert bench_methods.METHODS["aisdf-served"] == ("aisdf", "served")
     assert bench_methods.MODELS["aisdf"].measured and not bench_methods.MODELS["isdf"].measured
     assert bench_methods.MODELS["voxel-2cm"].voxel_size == 0.02
+
+
+def test_baked_column_is_the_services_baked_reply(aisdf_runner):
+    """``aisdf-baked``: the default reply of a query service that has baked the map, close to
+    the exact composition (the bake interpolates it)."""
+    _, r, pts = aisdf_runner
+    assert bench_methods.METHODS["aisdf-baked"] == ("aisdf", "baked")
+    f, g = r.query("baked", pts, True)
+    eng = r.engine()
+    assert eng.baked is not None and r.engine() is eng  # baked once per map
+    rep = eng.answer_sdf(query_messages.SdfRequest(pts.astype(np.float32)))
+    assert rep.baked
+    np.testing.assert_allclose(f, rep.sdf, atol=1e-6)
+    exact = r.query("served", pts, False)[0]
+    assert np.mean(np.abs(f - exact)) < 0.01 and g.shape == (len(pts), 3)
