@@ -10,9 +10,9 @@ global surfels and the mapper's measured points (``measured_points()``), with th
 service's fuse radius and one search worker, as ``QueryEngine._network_answer`` composes
 it. That is the exact composition (``exact: true`` in a request); by default the service
 answers from its bake of that same field (``aisdf.baked``: trilinear within ``bake_tol``,
-5 mm, where a block is refined): "baked" (not a default column: a full bake per evaluation
-costs tens of seconds on a CPU) is that answer, from a ``QueryEngine`` holding the map's
-messages (``map_messages``) that has baked it with its default settings. The AiSDF model pools
+5 mm, where a block is refined): "baked" is that reply, from a ``QueryEngine`` holding the
+map's messages (``map_messages``) that has baked it with its default settings (one full
+bake per evaluation). The AiSDF model pools
 measured points as the mapper does by default (``measured``: True), the other networks do
 not (the paper's models; pooling changes no training, only the keyframe time and which
 stored keyframes free-space clearing checks).

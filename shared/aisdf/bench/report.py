@@ -105,12 +105,13 @@ def table1(results: dict) -> tuple[str, dict]:
         lines += ["", "Left out: " + "; ".join(f"{m} ({why})" for m, why in results["unavailable"].items())]
     lines += ["", "Ground truth per scene:", ""]
     lines += [f"- {scene}: {s['ground_truth']}" for scene, s in results["scenes"].items()]
-    if "aisdf-served" in methods:
+    if "aisdf-served" in methods or "aisdf-baked" in methods:
         lines += ["", "AiSDF served: the query service's default answer (`source: \"fused\"`), composed by "
                   "`aisdf.query.answer.served_answer` from the network, the signed distance to the global surfels "
                   "(within 2 m) and the mapper's measured points, as the service composes an exact answer; by "
                   "default the service answers from its bake of that field (trilinear, within 5 mm where "
-                  "refined), not reproduced here."]
+                  "refined): " + ("the baked column is that reply (a query engine that baked the map)."
+                                  if "aisdf-baked" in methods else "not in this table (`--methods aisdf-baked`).")]
     lines += ["", "## Run details (seed 0)", "",
               "| Scene | Model | Frames seen | Keyframes | Steps | Compute (s) | Surfels | Up error (deg) |",
               "|---|---|---|---|---|---|---|---|"]

@@ -232,7 +232,8 @@ def add_arguments(p) -> None:
     p.add_argument("--quick", action="store_true", help="the quick profile (one small synthetic scene, ~2 min)")
     p.add_argument("--scenes", nargs="+", choices=list(SCENES), help="scenes (default: the profile's)")
     p.add_argument("--methods", nargs="+", choices=list(METHODS), help="Table I columns (default: voxel maps at "
-                   "5 and 2 cm, iSDF, AiSDF w/o and w. explicit map, AiSDF served; voxblox: the paper's 5.5 cm)")
+                   "5 and 2 cm, iSDF, AiSDF w/o and w. explicit map, AiSDF served exact and baked; voxblox: the "
+                   "paper's 5.5 cm)")
     p.add_argument("--ablation", nargs="*", help="scenes that also get Table II's models (none: no Table II)")
     p.add_argument("--mode", choices=["iterations", "realtime"], help="equal iterations (default) or real-time replay")
     p.add_argument("--seeds", type=int, nargs="+", help="one number N: seeds 0..N-1; several: those seeds "
