@@ -69,8 +69,8 @@ def test_untracked_without_an_odom_frame():
 
 
 def test_the_live_loop_sends_the_corrections():
-    from services.frontend.config import FrontendConfig
-    from services.frontend.main import stream_live
+    from aisdf_frontend.config import FrontendConfig
+    from aisdf_frontend.main import stream_live
     from aisdf.keyframes import KeyframeSelector
     from aisdf.synthetic import SyntheticSequence
 
