@@ -334,7 +334,18 @@ def person(args, out: Path) -> dict:
                     "worst_below_m": float(diff.min()), "occupied": float(np.mean(sdf[clear] < OCCUPIED_M)),
                     "below_20cm": float(np.mean(diff < -0.20)),
                     "mapper": {k: run.mapper_info().get(k) for k in ("keyframes", "steps", "redundant")}})
-        _say(f"person: {args.person_after_s:g} s after (v{v}): served - truth down to {diff.min():+.3f} m; "
+        # where the worst is, and what each part of the answer says there (exact: the newest
+        # map's composition, not the bake's; implicit: the networks alone)
+        w = int(np.argmin(diff))
+        exact = np.asarray(run.client.query(grid[w:w + 1], exact=True).sdf, np.float64)[0]
+        implicit = np.asarray(run.client.query(grid[w:w + 1], source="implicit").sdf, np.float64)[0]
+        rec["worst"] = {"canonical": np.round(seq.scene.to_canon(grid[w:w + 1])[0], 3).tolist(),
+                        "truth_m": float(truth[w]), "served_m": float(sdf[w]), "exact_m": float(exact),
+                        "networks_m": float(implicit)}
+        rec["worst_below_m_clear"] = float(diff[clear].min()) if clear.any() else None
+        _say(f"person: {args.person_after_s:g} s after (v{v}): served - truth down to {diff.min():+.3f} m "
+             f"({100 * rec['below_20cm']:.2f} % of it more than 20 cm below; {rec['worst_below_m_clear']:+.3f} m "
+             f"{100 * CLEAR_M:.0f} cm or more from the floor); at the worst point {rec['worst']}; "
              f"{100 * rec['occupied']:.1f} % of the swept volume occupied")
     return rec
 
