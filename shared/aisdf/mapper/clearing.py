@@ -92,8 +92,7 @@ class FreeSpace:
 
     def passed(self, points: np.ndarray) -> np.ndarray:
         """(N,) bool: the keyframe's rays pass through the point, beyond the noise."""
-        z, d = self._lookup(points)
-        return (d > 0) & (d > z + self.margin + self.sigmas * depth_sigma(d))
+        return self.tested(points)[0]
 
     def tested(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(passed, testable): testable points are in view with a depth in their window."""

@@ -109,7 +109,7 @@ class KeyframeIntake:
             raise ValueError(f"keyframe {frame.sensor}/{frame.frame_id} is already in the map")
         self.touched: list[tuple[str, int]] = []
         self.cleared_points = np.zeros((0, 3))
-        news = 0
+        news = False
         if self.policy.clear_free_space:
             t = time.perf_counter()
             news = self._clear(frame, stored)
@@ -126,9 +126,9 @@ class KeyframeIntake:
                 self.timings[k].append(v)
         return frame
 
-    def _clear(self, frame: Frame, stored) -> int:
-        """``clearing``'s three retirements for one new keyframe; returns 1 when they are news
-        (``clearing.NEWS_VOXELS``: the keyframe is then not redundant), else 0."""
+    def _clear(self, frame: Frame, stored) -> bool:
+        """``clearing``'s three retirements for one new keyframe; True when they are news
+        (``clearing.NEWS_VOXELS``: the keyframe is then not redundant)."""
         p = self.policy
         ev = clearing.FreeSpace(frame.depth, frame.K, frame.T_WC, self.max_depth, p.clear_margin_m, p.clear_sigmas)
         keys, self.cleared_points, solid = clearing.clear_measured(self.measured, ev)
@@ -152,7 +152,7 @@ class KeyframeIntake:
             n_surf = self.structure.remove_surfels(clearing.surfels_passed(self.structure.map.surfels(), ev))
         self.cleared["measured"] += n_meas
         self.cleared["surfels"] += n_surf
-        return int(solid >= clearing.NEWS_VOXELS or n_surf > 0)
+        return solid >= clearing.NEWS_VOXELS or n_surf > 0
 
     def record(self, frame: Frame) -> None:
         """The stored keyframe's part in the box, the observed space, the measured points and
