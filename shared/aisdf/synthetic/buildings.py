@@ -3,7 +3,9 @@
 Every builder returns the scene in its canonical frame (z up, floor at z = 0, identity
 ``T_W_canon``); ``make_building`` places it in the world. The seed jitters furniture
 positions by up to 0.15 m (furniture against a wall slides along it, never into it); the
-room shape is fixed. Solids touch (legs under table tops, stacked boxes, shelves against
+room shape is fixed. Every box is labelled (``Scene.kinds``: "wall" for the floor's interior
+walls and lintels, the layout; "table", "chair", "shelf", "cabinet", "box", "stairs" for the
+furniture, see scene.py); every building has furniture. Solids touch (legs under table tops, stacked boxes, shelves against
 walls) but never interpenetrate.
 
 Horizontal directions (canonical azimuth of wall / face normals, mod 180 degrees):
@@ -20,6 +22,7 @@ room) are walked by ``trajectory.make_walk`` instead of the closed loop of
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from functools import wraps
 from typing import Callable
 
 import numpy as np
@@ -30,23 +33,41 @@ from .scene import Scene, rot_z
 Box = tuple[np.ndarray, np.ndarray, np.ndarray]  # center, rotation, half size
 
 
+def _piece(kind: str):
+    """A ``_Layout`` method whose boxes are all labelled ``kind`` (a table's top and legs, ...)."""
+    def deco(fn):
+        @wraps(fn)
+        def labelled(self, *a, **k):
+            before, self.kind = self.kind, kind
+            try:
+                return fn(self, *a, **k)
+            finally:
+                self.kind = before
+        return labelled
+    return deco
+
+
 class _Layout:
     """Collects boxes in the canonical frame; sizes are full sizes, ``z0`` the bottom."""
 
     def __init__(self, rng: np.random.Generator, jitter: float) -> None:
         self.rng, self.jitter, self.items = rng, jitter, []
+        self.kinds: list[str] = []  # one label per item (scene.py); ``kind``: the default
+        self.kind = "box"
 
     def j(self, scale: float = 1.0) -> float:
         return float(self.rng.uniform(-1, 1)) * self.jitter * scale
 
-    def box(self, x, y, sx, sy, sz, z0=0.0, yaw=0.0) -> None:
+    def box(self, x, y, sx, sy, sz, z0=0.0, yaw=0.0, kind: str | None = None) -> None:
         self.items.append((np.array([x, y, z0 + sz / 2]), rot_z(yaw), np.array([sx, sy, sz]) / 2))
+        self.kinds.append(kind or self.kind)
 
-    def local_box(self, origin, yaw, u, v, sx, sy, sz, z0=0.0) -> None:
+    def local_box(self, origin, yaw, u, v, sx, sy, sz, z0=0.0, kind: str | None = None) -> None:
         """A box centred at (u, v) in the frame at ``origin`` rotated by ``yaw``."""
         c = np.asarray(origin, dtype=float) + rot_z(yaw)[:2, :2] @ np.array([u, v])
-        self.box(c[0], c[1], sx, sy, sz, z0, yaw)
+        self.box(c[0], c[1], sx, sy, sz, z0, yaw, kind)
 
+    @_piece("table")
     def table(self, x, y, sx, sy, height=0.74, yaw=0.0, top=0.04, leg=0.05) -> None:
         self.local_box((x, y), yaw, 0, 0, sx, sy, top, height - top)
         for a in (-1, 1):
@@ -54,6 +75,7 @@ class _Layout:
                 u, v = a * (sx / 2 - leg / 2 - 0.04), b * (sy / 2 - leg / 2 - 0.04)
                 self.local_box((x, y), yaw, u, v, leg, leg, height - top)
 
+    @_piece("chair")
     def chair(self, x, y, yaw=0.0, seat=0.45, leg=0.04) -> None:
         """Seat, four legs and a backrest on the chair's local -v side."""
         self.local_box((x, y), yaw, 0, 0, seat, seat, 0.05, 0.43)
@@ -62,6 +84,7 @@ class _Layout:
                 self.local_box((x, y), yaw, a * (seat / 2 - leg), b * (seat / 2 - leg), leg, leg, 0.43)
         self.local_box((x, y), yaw, 0, -seat / 2 + 0.02, seat, 0.04, 0.42, 0.48)
 
+    @_piece("shelf")
     def shelf(self, x, y, width, depth, height, n_boards=4, yaw=0.0, t=0.03) -> None:
         """Two sides, a back panel on the local -v side and ``n_boards`` boards."""
         for a in (-1, 1):
@@ -74,7 +97,7 @@ class _Layout:
     def stairs(self, x, y, n, rise, run, width, yaw=0.0) -> None:
         """``n`` solid steps climbing along local +u from (x, y) (the first step's front edge)."""
         for k in range(n):
-            self.local_box((x, y), yaw, (k + 0.5) * run, width / 2, run, width, (k + 1) * rise)
+            self.local_box((x, y), yaw, (k + 0.5) * run, width / 2, run, width, (k + 1) * rise, kind="stairs")
 
     def along_wall(self, poly, k, s, depth) -> tuple[np.ndarray, float]:
         """Point at fraction ``s`` of polygon edge ``k`` moved ``depth`` / 2 inwards, and the
@@ -86,7 +109,7 @@ class _Layout:
 
     def scene(self, poly, height, name) -> Scene:
         c, r, h = (np.array(v) for v in zip(*self.items)) if self.items else (np.zeros((0, 3)),) * 3
-        return Scene(Room(np.asarray(poly, dtype=float), height), Boxes(c, r, h), name=name)
+        return Scene(Room(np.asarray(poly, dtype=float), height), Boxes(c, r, h), name=name, kinds=tuple(self.kinds))
 
 
 def manhattan(seed: int = 0) -> Scene:
@@ -97,7 +120,7 @@ def manhattan(seed: int = 0) -> Scene:
     L.table(tx, ty, 1.4, 0.8, 0.75)
     L.chair(tx - 0.3, ty - 0.75, 0.0)
     L.chair(tx + 0.3, ty + 0.75, np.pi)
-    L.box(1.2 + L.j(), 0.225, 0.9, 0.45, 0.9)  # cabinet against the y = 0 wall
+    L.box(1.2 + L.j(), 0.225, 0.9, 0.45, 0.9, kind="cabinet")  # cabinet against the y = 0 wall
     L.box(4.7 + L.j(), 4.7, 0.5, 0.6, 0.5)
     yb = 4.0 + L.j()
     L.box(0.4, yb, 0.8, 0.6, 0.3)
@@ -115,7 +138,7 @@ def atlanta(seed: int = 0) -> Scene:
     tx, ty = 3.5 + L.j(), 2.6 + L.j()
     L.table(tx, ty, 1.6, 0.9, 0.74)
     L.chair(tx, ty - 0.8, 0.0)
-    L.box(2.6 + L.j(), 0.25, 1.2, 0.5, 1.0)  # sideboard on the bottom wall
+    L.box(2.6 + L.j(), 0.25, 1.2, 0.5, 1.0, kind="cabinet")  # sideboard on the bottom wall
     L.shelf(4.4 + L.j(), 2 * s3 - 0.175, 1.0, 0.35, 2.0, 4, np.pi)
     L.box(2.0 + L.j(), 4.8, 0.5, 0.5, 0.45)
     L.box(5.6 + L.j(), 1.3 + L.j(), 0.6, 0.4, 0.35)
@@ -136,7 +159,7 @@ def office(seed: int = 0) -> Scene:
     L.chair(x2 + 0.2, y2 + 0.6, np.pi)
     L.shelf(0.175, 3.3 + L.j(), 1.0, 0.35, 2.0, 5, -np.pi / 2)
     c, yaw = L.along_wall(poly, 3, 0.5 + L.j(0.5), 0.45)
-    L.local_box(c, yaw, 0, 0, 0.8, 0.45, 1.0)
+    L.local_box(c, yaw, 0, 0, 0.8, 0.45, 1.0, kind="cabinet")
     yb = 0.5 + L.j()
     L.box(6.75, yb, 0.5, 0.6, 0.45)
     L.box(6.75, yb, 0.35, 0.35, 0.3, z0=0.45)  # stacked on the previous one
@@ -153,7 +176,7 @@ def stairs(seed: int = 0) -> Scene:
     x0 = 3.0 + L.j()
     L.stairs(x0, 0.0, n, rise, run, 1.0)
     x1 = x0 + n * run
-    L.box((x1 + 7.0) / 2, 0.5, 7.0 - x1, 1.0, n * rise)  # landing
+    L.box((x1 + 7.0) / 2, 0.5, 7.0 - x1, 1.0, n * rise, kind="stairs")  # landing
     L.table(1.5 + L.j(), 2.8 + L.j(), 1.2, 0.7, 0.74)
     L.box(0.3, 0.3, 0.6, 0.6, 0.5)  # in the corners
     L.box(6.6, 3.6, 0.8, 0.8, 0.8)
@@ -231,9 +254,9 @@ def _wall(L: _Layout, a, b, height: float, doors=(), side: float = 1.0, t: float
     for k in range(0, len(cuts), 2):
         s0, s1 = cuts[k], cuts[k + 1]
         if s1 - s0 > 1e-6:
-            L.local_box(f.o, yaw, (s0 + s1) / 2, side * t / 2, s1 - s0, t, height)
+            L.local_box(f.o, yaw, (s0 + s1) / 2, side * t / 2, s1 - s0, t, height, kind="wall")
     for s in doors:
-        L.local_box(f.o, yaw, s, side * t / 2, _DOOR_W, t, height - _DOOR_H, z0=_DOOR_H)
+        L.local_box(f.o, yaw, s, side * t / 2, _DOOR_W, t, height - _DOOR_H, z0=_DOOR_H, kind="wall")
 
 
 def _floor_geometry() -> dict:
@@ -299,11 +322,11 @@ def floor(seed: int = 0) -> Scene:
     _wall(L, (0, 6.5), Q, h, [door[r][0] for r in ("room4", "room5")], side=+1)
     _wall(L, O, wing(WING_LEN, 0), h, [float((door[r] - O) @ g["d"]) for r in ("room6", "room7")], side=-1)
     for x in (4.0, 8.0):
-        L.box(x, 4.5 / 2 - 0.06, _T_WALL, 4.5 - 0.12, h)
-    L.box(12.0 + _T_WALL / 2, 2.25, _T_WALL, 4.5, h)  # room 3 | room 6 (also fills the corner at O)
-    L.box(5.5, 9.0 + 0.06, _T_WALL, 5.0 - 0.12, h)  # room 4 | room 5
+        L.box(x, 4.5 / 2 - 0.06, _T_WALL, 4.5 - 0.12, h, kind="wall")
+    L.box(12.0 + _T_WALL / 2, 2.25, _T_WALL, 4.5, h, kind="wall")  # room 3 | room 6 (also fills the corner at O)
+    L.box(5.5, 9.0 + 0.06, _T_WALL, 5.0 - 0.12, h, kind="wall")  # room 4 | room 5
     c = wing(5.5, -2.25 - 0.06)
-    L.local_box(c, wy, 0, 0, _T_WALL, 4.5 - 0.12, h)  # room 6 | room 7
+    L.local_box(c, wy, 0, 0, _T_WALL, 4.5 - 0.12, h, kind="wall")  # room 6 | room 7
     j = L.j
     # Rooms 1-3 (south; local frame: u along -x, v along -y from the corridor wall).
     for k, (x1, du) in enumerate(((4.0, 2.6), (8.0, 2.0), (12.0, 1.4))):
@@ -315,7 +338,7 @@ def floor(seed: int = 0) -> Scene:
         if k != 1:  # a shelf on the back wall, or a cabinet on the side wall
             L.shelf(*F(4.0 - far + j(0.5), 4.5 - 0.175), 1.0, 0.35, 1.9, 5, 0.0)
         else:
-            L.box(*F(0.42, 3.6 + j()), 0.6, 0.9, 0.9)
+            L.box(*F(0.42, 3.6 + j()), 0.6, 0.9, 0.9, kind="cabinet")
         L.box(*F(far + j(0.5), 0.55), 0.5, 0.5, 0.5 + 0.1 * k)  # in the front corner away from the door
     # Rooms 4-5 (north; local frame = canonical, origin at the corridor wall).
     F4 = _Frame2D((0.0, 6.5), 0.0)
@@ -327,15 +350,15 @@ def floor(seed: int = 0) -> Scene:
     F5 = _Frame2D((5.5, 6.5), 0.0)
     L.table(*F5(4.4 + j(), 3.7 + j()), 0.8, 1.6, 0.74)
     L.chair(*F5(3.75, 3.7 + j(0.5)), -np.pi / 2)
-    L.box(*F5(0.06 + 0.3 + 0.12, 3.2 + j()), 0.6, 1.2, 1.0)  # cabinet against the room 4 wall
+    L.box(*F5(0.06 + 0.3 + 0.12, 3.2 + j()), 0.6, 1.2, 1.0, kind="cabinet")  # cabinet against the room 4 wall
     sb = F5(0.8 + j(), 4.8)
-    L.box(*sb, 0.9, 0.4, 0.75)  # sideboard on the north wall
+    L.box(*sb, 0.9, 0.4, 0.75, kind="cabinet")  # sideboard on the north wall
     L.box(*sb, 0.4, 0.3, 0.3, z0=0.75)  # something on it
     # Rooms 6-7 (the wing; local u along the wing, v into the room from the corridor wall).
     Fw = _Frame2D(O, wy)  # wing frame: canonical = O + u d + v n
     L.table(*Fw(4.3 + j(), -3.65), 1.4, 0.7, 0.74, wy)
     L.chair(*Fw(4.3 + j(0.5), -3.05), wy + np.pi)
-    L.box(*Fw(0.8 + j(0.5), -0.12 - 0.225), 0.8, 0.45, 1.1, yaw=wy)  # cabinet by the corridor wall
+    L.box(*Fw(0.8 + j(0.5), -0.12 - 0.225), 0.8, 0.45, 1.1, yaw=wy, kind="cabinet")  # cabinet by the corridor wall
     L.box(12.0 + 0.12 + 0.3, 0.6 + j(), 0.6, 0.6, 0.7)  # in the wedge, against the room 3 wall
     L.box(12.0 + 0.12 + 0.3, 0.6, 0.4, 0.4, 0.35, z0=0.7)
     L.table(*Fw(10.2 + j(), -3.3 + j()), 1.6, 0.9, 0.74, wy)
@@ -344,8 +367,8 @@ def floor(seed: int = 0) -> Scene:
     L.shelf(*Fw(WING_LEN - 0.175, -3.4 + j()), 1.2, 0.35, 2.0, 4, wy + np.pi / 2)
     L.box(*Fw(6.4 + j(0.5), -4.275), 0.8, 0.45, 0.8, yaw=wy)
     # Corridor: two cabinets against walls, away from the doors.
-    L.box(4.0 + j(), 6.5 - 0.2, 0.8, 0.4, 1.0)
-    L.local_box(wing(5.8 + j(), 2.0), wy, 0, -0.2, 0.8, 0.4, 1.0)
+    L.box(4.0 + j(), 6.5 - 0.2, 0.8, 0.4, 1.0, kind="cabinet")
+    L.local_box(wing(5.8 + j(), 2.0), wy, 0, -0.2, 0.8, 0.4, 1.0, kind="cabinet")
     return L.scene(poly, h, "floor")
 
 

@@ -11,6 +11,16 @@ a solid it is minus the distance to that primitive's own surface (covered faces 
 inside a cabinet standing on the floor its bottom face counts), so its magnitude is a lower
 bound on the true distance to free space, exact where no other solid, wall or floor
 touches the nearest face.
+
+Labels (``kinds``: one string per box, or None for an unlabelled scene): ``"wall"`` for the
+building's own walls built from boxes (the floor's interior walls and the lintels over its
+doors), else what the box belongs to (``"table"``, ``"chair"``, ``"shelf"``, ``"cabinet"``,
+``"box"``, ``"stairs"``). The *layout* is what an Atlanta room layout holds: the room
+prism's walls, floor and ceiling and the ``LAYOUT_KINDS`` boxes (walls). Everything else is
+*furniture*, the clutter a layout must not flatten, the staircase included (a layout of
+vertical walls between one floor and one ceiling has no place for its steps).
+``furniture_distance`` is the signed distance to the furniture alone; ``nearest_kind`` names
+the primitive whose surface is nearest. Labels change no geometry.
 """
 
 from __future__ import annotations
@@ -24,6 +34,8 @@ from ..structure.surfel_types import Surfels
 from .primitives import Boxes, Room
 from .raycast import face_axes, raycast
 
+LAYOUT_KINDS = frozenset({"wall"})  # box kinds that belong to the layout (with the room prism)
+ROOM_KIND = "room"  # ``nearest_kind`` of the room prism (walls, floor, ceiling)
 CHUNK = 32768  # points per vectorised block (bounds memory to ~B * CHUNK * 3 floats)
 _Z = np.array([0.0, 0.0, 1.0])
 
@@ -46,10 +58,16 @@ class Scene:
     boxes: Boxes
     T_W_canon: np.ndarray = field(default_factory=lambda: np.eye(4))
     name: str = "scene"
+    kinds: tuple[str, ...] | None = None  # one label per box (module docstring); None: unlabelled
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "T_W_canon", np.asarray(self.T_W_canon, dtype=np.float64))
         object.__setattr__(self, "T_canon_W", invert(self.T_W_canon))
+        if self.kinds is not None:
+            kinds = tuple(str(k) for k in self.kinds)
+            if len(kinds) != len(self.boxes):
+                raise ValueError(f"kinds: one label per box, got {len(kinds)} for {len(self.boxes)} boxes")
+            object.__setattr__(self, "kinds", kinds)
 
     def __repr__(self) -> str:
         return f"Scene({self.name!r}, {len(self.room.polygon)} walls, {len(self.boxes)} boxes)"
@@ -135,6 +153,50 @@ class Scene:
         if "_face_axes" not in self.__dict__:
             object.__setattr__(self, "_face_axes", face_axes(self.room, self.boxes))
         return self.__dict__["_face_axes"]
+
+    # -- labels: layout and furniture ---------------------------------------------------
+    def _labelled(self) -> tuple[str, ...]:
+        if self.kinds is None:
+            raise ValueError(f"scene {self.name!r} has no labels (kinds): layout and furniture are unknown")
+        return self.kinds
+
+    @property
+    def furniture_mask(self) -> np.ndarray:
+        """(B,) bool: which boxes are furniture (not ``LAYOUT_KINDS``). ValueError if unlabelled."""
+        return np.array([k not in LAYOUT_KINDS for k in self._labelled()], dtype=bool)
+
+    @property
+    def furniture(self) -> Boxes:
+        """The furniture boxes alone (canonical frame)."""
+        if "_furniture" not in self.__dict__:
+            m = self.furniture_mask
+            b = self.boxes
+            object.__setattr__(self, "_furniture", Boxes(b.centers[m], b.rotations[m], b.halves[m]))
+        return self.__dict__["_furniture"]
+
+    def furniture_distance(self, points_W: np.ndarray) -> np.ndarray:
+        """(N, 3) world points -> (N,) exact signed distance (m) to the nearest furniture box,
+        positive outside every one, negative inside one; +inf where the scene has no furniture."""
+        p = self.to_canon(points_W)
+        out = np.empty(len(p))
+        for s in _chunks(len(p)):
+            out[s] = self.furniture.nearest(p[s], np.full(s.stop - s.start, np.inf))[0]
+        return out
+
+    def nearest_kind(self, points_W: np.ndarray) -> np.ndarray:
+        """(N,) label of the primitive the SDF takes each point's distance from (its nearest
+        surface for points in free space): ``ROOM_KIND`` for the room prism, else its box's kind."""
+        labels = np.array(self._labelled() + (ROOM_KIND,), dtype=object)
+        p = self.to_canon(points_W)
+        arg = np.empty(len(p), dtype=np.int64)
+        for s in _chunks(len(p)):
+            arg[s] = self._sdf_arg(p[s])[1]
+        return labels[arg]  # -1 (the room) picks the last label
+
+    def nearest_is_furniture(self, points_W: np.ndarray) -> np.ndarray:
+        """(N,) bool: the primitive nearest each point is furniture (``nearest_kind``)."""
+        k = self.nearest_kind(points_W)
+        return np.array([x != ROOM_KIND and x not in LAYOUT_KINDS for x in k], dtype=bool)
 
     # -- extent and visualisation -------------------------------------------------------
     def _corners_canon(self) -> np.ndarray:
