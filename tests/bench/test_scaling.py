@@ -48,6 +48,10 @@ def test_quick_scaling_table(result):
     assert ("| fused with the measured surface (served since 1.4 with submaps, 1.5 with one network): error, end of the walk / "
             "+2 s (cm) |") in md and "fused answer: end of the walk" in md
     assert "| unknown space as occupied (1.6: the smaller of the served answer and the distance to unobserved space)" in md
+    assert "| points near furniture (its nearest surface furniture, or within 30 cm of it) (served)" in md
+    for m in methods:  # the labelled buildings: every point near furniture or not, the same points for every mapper
+        near = res["runs"][m]["floor"]["near_furniture_end"]
+        assert 5 < near["points_pct"] < 60 and near["error_cm"] is not None and near["away_error_cm"] is not None
     assert cfg.source == "served"  # the criteria judge query/sdf's default answer for each mapper
     n, P = cfg.keyframes, cfg.period_s
     for m in methods:

@@ -132,8 +132,11 @@ def test_seeds_option_and_spread(tmp_path):
             f = r["final"][m]
             assert math.isfinite(f["sdf_error_cm"])
             assert f["observed_share"] + f["unobserved_share"] == pytest.approx(1.0)
+            assert 0 < f["near_furniture_share"] < 1 and math.isfinite(f["sdf_error_near_furniture_cm"])
+        assert r["final"]["voxel-5cm"]["near_furniture_share"] == r["final"]["aisdf-served"]["near_furniture_share"]
     md, data = table1(res)
     assert " ± " in md and "AiSDF served (default answer)" in md
+    assert "**Near furniture**" in md and (tmp_path / "table1c.md").exists()
     cell = data["scenes"][SCENE]["methods"]["aisdf-served"]
     assert cell["seeds"] == 2 and cell["sdf_error_cm_std"] > 0  # two trainings differ
     mdb, datab = table1b(res)

@@ -19,6 +19,15 @@ to the scene's ``max_depth``, as the maps use it) of the frames the points are d
 (every 5th frame of the stream), back-projected, thinned to one per 1 cm voxel. Else
 *unobserved*: a surface no camera measured (behind furniture, beyond the walls, the far
 side of a corner), whose distance every map has to guess.
+
+Near furniture (``split=True`` on a labelled synthetic building; Table I's near-furniture
+rows): a point is *near furniture* when the primitive its exact SDF comes from (its nearest
+surface, for a point in free space) is furniture, or when it lies within ``NEAR_FURNITURE_M``
+(30 cm) of a furniture surface or inside furniture (``Scene.furniture_distance``). Furniture
+is every labelled box that is not layout (``aisdf.synthetic.scene``: tables, chairs, shelves,
+cabinets, boxes, the staircase; the layout is the room's walls, floor and ceiling and the
+floor's interior walls). The meshes and the 7-Scenes reference carry no such labels: their
+split is None (the tables say n/a).
 """
 
 from __future__ import annotations
@@ -32,6 +41,21 @@ from ..geometry import backproject, kdtree, transform, valid_depth
 
 OBSERVED_M = 0.05  # a nearest true surface point this close to a measured depth point is observed
 THIN_M = 0.01  # measured points: one per voxel of this edge
+NEAR_FURNITURE_M = 0.30  # a point this close to a furniture surface (or inside furniture) is near furniture
+
+
+def labelled_building(scene):
+    """The labelled synthetic building behind a bench scene (``aisdf.synthetic.Scene`` with
+    ``kinds``), or None (a mesh, a reference, an unlabelled scene)."""
+    building = getattr(getattr(scene, "frames", None), "scene", None)
+    return building if getattr(building, "kinds", None) is not None else None
+
+
+def near_furniture_mask(building, points: np.ndarray, within: float = NEAR_FURNITURE_M) -> np.ndarray:
+    """(N,) bool: the nearest primitive of each world point is furniture, or a furniture
+    surface lies within ``within`` of it (or it is inside furniture). Module docstring."""
+    points = np.asarray(points, np.float64).reshape(-1, 3)
+    return building.nearest_is_furniture(points) | (building.furniture_distance(points) <= within)
 
 
 def measured_depth_points(frames: Sequence[dict], max_depth: float, voxel: float = THIN_M) -> np.ndarray:
@@ -83,6 +107,9 @@ class EvalSet:
         self.points, self.gt = p[keep], s[keep]
         # Table Ib: whether each point's nearest true surface was measured (None: not split)
         self.observed = observed_mask(scene, frames, self.points, self.gt) if split else None
+        # Table I's near-furniture rows: None where not split or the scene has no labels
+        building = labelled_building(scene) if split else None
+        self.near_furniture = None if building is None else near_furniture_mask(building, self.points)
         if hasattr(scene.gt_sdf, "gradient_mask"):
             self.gmask = np.asarray(scene.gt_sdf.gradient_mask(self.points, metrics.GRAD_STEP), dtype=bool)
         else:
@@ -114,10 +141,18 @@ class EvalSet:
 
     def split(self, f: np.ndarray) -> dict:
         """Mean SDF error (cm) on the points whose nearest true surface was observed and on the
-        others (NaN where there are none), and the share of each."""
+        others (NaN where there are none), and the share of each; on a labelled building also
+        near furniture, away from it, and near it where unobserved."""
         err = np.abs(np.asarray(f, np.float64) - self.gt)
         obs = self.observed
         n = max(len(err), 1)
         mean = lambda m: 100.0 * float(err[m].mean()) if m.any() else float("nan")  # noqa: E731
-        return {"sdf_error_observed_cm": mean(obs), "sdf_error_unobserved_cm": mean(~obs),
-                "observed_share": float(obs.sum()) / n, "unobserved_share": float((~obs).sum()) / n}
+        out = {"sdf_error_observed_cm": mean(obs), "sdf_error_unobserved_cm": mean(~obs),
+               "observed_share": float(obs.sum()) / n, "unobserved_share": float((~obs).sum()) / n}
+        near = self.near_furniture
+        if near is not None:  # near furniture, and the part of it whose nearest surface no camera measured
+            out.update({"near_furniture_share": float(near.sum()) / n, "sdf_error_near_furniture_cm": mean(near),
+                        "sdf_error_away_from_furniture_cm": mean(~near),
+                        "near_furniture_unobserved_share": float((near & ~obs).sum()) / n,
+                        "sdf_error_near_furniture_unobserved_cm": mean(near & ~obs)})
+        return out

@@ -6,7 +6,7 @@
         "ground_truth": label, "gt_kind": "exact" | "mesh" | "reference",
         "runs": [  # one per seed
             {"seed": s, "final": {method: metrics (with the observed / unobserved split)},
-             "ablation": {model: metrics},
+             "ablation": {model: metrics},  # final metrics: also near furniture (synthetic)
              "over_time": [{"frame": i, "t": s, "methods": {method: metrics}}],
              "models": {model: summary (frames seen, keyframes, steps, compute, timings_ms)}}]}}}
 """
@@ -19,10 +19,15 @@ from pathlib import Path
 
 import numpy as np
 
+from .evaluation import NEAR_FURNITURE_M
 from .methods import ABLATION, LABELS, MODELS
 
 METRICS = ("sdf_error_cm", "collision_cost_error", "gradient_cosine_distance")
 SPLIT = ("observed_share", "sdf_error_observed_cm", "unobserved_share", "sdf_error_unobserved_cm")
+FURNITURE = ("near_furniture_share", "sdf_error_near_furniture_cm", "sdf_error_away_from_furniture_cm",
+             "near_furniture_unobserved_share", "sdf_error_near_furniture_unobserved_cm")
+NO_LABELS = ("no labels: the Replica mesh and the 7-Scenes reference do not say which surface is furniture, so "
+             "they have no near-furniture split")
 SHORT = {"sdf_error_cm": "SDF (cm)", "collision_cost_error": "Collision", "gradient_cosine_distance": "Gradient"}
 DIGITS = {"sdf_error_cm": 3, "collision_cost_error": 4, "gradient_cosine_distance": 3}
 MODULES = {  # Table III columns: pipeline timing key -> label, in the paper's order
@@ -34,12 +39,12 @@ PAPER_TABLE3 = {"atlanta": 2, "surfels": 54, "sampling": 5, "bound": 7, "forward
 
 def _agg(values: list[dict]) -> dict:
     """Mean and sample standard deviation (n - 1) over seeds of each metric and of the
-    observed / unobserved split (NaN-aware)."""
+    observed / unobserved and near-furniture splits (NaN-aware; a split no run has is left out)."""
     out = {}
-    for m in METRICS + SPLIT:
+    for m in METRICS + SPLIT + FURNITURE:
         v = np.array([d.get(m, np.nan) for d in values], dtype=np.float64)
         ok = v[np.isfinite(v)]
-        if m in SPLIT and not len(ok):
+        if m not in METRICS and not len(ok):
             continue
         out[m] = float(ok.mean()) if len(ok) else float("nan")
         out[f"{m}_std"] = float(ok.std(ddof=1)) if len(ok) > 1 else 0.0
@@ -103,6 +108,7 @@ def table1(results: dict) -> tuple[str, dict]:
         lines.append("| " + " | ".join([name, _gt_short(s)] + cells) + " |")
     if results.get("unavailable"):
         lines += ["", "Left out: " + "; ".join(f"{m} ({why})" for m, why in results["unavailable"].items())]
+    lines += near_furniture_lines(results, data)
     lines += ["", "Ground truth per scene:", ""]
     lines += [f"- {scene}: {s['ground_truth']}" for scene, s in results["scenes"].items()]
     if "aisdf-served" in methods or "aisdf-baked" in methods:
@@ -145,6 +151,68 @@ def table1b(results: dict) -> tuple[str, dict]:
             lines.append(f"| {scene} | {LABELS.get(m, m)} | {_cell(a, 'observed_share', 1, 100)} | "
                          f"{_cell(a, 'sdf_error_observed_cm', 2)} | {_cell(a, 'unobserved_share', 1, 100)} | "
                          f"{_cell(a, 'sdf_error_unobserved_cm', 2)} | {_cell(a, 'sdf_error_cm', 2)} |")
+    return "\n".join(lines) + "\n", data
+
+
+def _near_note() -> str:
+    return (f"Near furniture: the point's nearest true surface is furniture, or a furniture surface lies within "
+            f"{100 * NEAR_FURNITURE_M:g} cm of it (or it is inside furniture); furniture is every solid of the "
+            "synthetic building that an Atlanta room layout does not hold (tables, chairs, shelves, cabinets, boxes, "
+            "the staircase; the layout: walls, floor, ceiling, interior walls). Away: the other points.")
+
+
+def near_furniture_lines(results: dict, data: dict) -> list[str]:
+    """Table I's near-furniture rows: per scene, the share of points near furniture and each
+    method's SDF error (cm) there / away from it (n/a for a scene without labels)."""
+    methods = results["methods"]
+    lines = ["", "**Near furniture**: SDF error (cm) near furniture / away from it. " + _near_note(), "",
+             "| Scene | Near furniture (% of points) | " + " | ".join(LABELS.get(m, m) for m in methods) + " |",
+             "|---|" + "---:|" * (len(methods) + 1)]
+    unlabelled = []
+    for scene in results["scenes"]:
+        agg = data["scenes"][scene]["methods"]
+        if not any("near_furniture_share" in agg[m] for m in methods):
+            unlabelled.append(scene)
+            lines.append(f"| {scene} | n/a | " + " | ".join("n/a" for _ in methods) + " |")
+            continue
+        share = next(_cell(agg[m], "near_furniture_share", 1, 100) for m in methods if "near_furniture_share" in agg[m])
+        cells = [f"{_cell(agg[m], 'sdf_error_near_furniture_cm', 2)} / {_cell(agg[m], 'sdf_error_away_from_furniture_cm', 2)}"
+                 for m in methods]
+        lines.append(f"| {scene} | {share} | " + " | ".join(cells) + " |")
+    data["near_furniture_m"] = NEAR_FURNITURE_M
+    if unlabelled:
+        lines += ["", f"n/a ({', '.join(unlabelled)}): {NO_LABELS}."]
+    return lines
+
+
+def table1c(results: dict) -> tuple[str, dict]:
+    """Table I's SDF error near furniture, the part of it whose nearest surface no camera
+    measured, and away from furniture, per scene and method (``evaluation``'s docstring)."""
+    methods = results["methods"]
+    data: dict = {"title": "Table Ic", "methods": methods, "near_furniture_m": NEAR_FURNITURE_M, "scenes": {},
+                  "unlabelled": {}}
+    lines = ["# Table Ic: SDF error (cm) near furniture, and away from it", "", _near_note() + " Unobserved: as in "
+             "Table Ib. Shares: of the points of Table I." + (" Mean ± standard deviation over the seeds."
+                                                             if _nseeds(results["seeds"]) > 1 else ""), "",
+             "| Scene | Method | Near furniture: share (%) | Near: SDF (cm) | Near and unobserved: share (%) | "
+             "Near and unobserved: SDF (cm) | Away: SDF (cm) | All: SDF (cm) |", "|---|---|---|---|---|---|---|---|"]
+    for scene, s in results["scenes"].items():
+        data["scenes"][scene] = {}
+        for m in methods:
+            a = _agg([r["final"][m] for r in s["runs"] if m in r["final"]])
+            if "near_furniture_share" not in a:
+                continue
+            data["scenes"][scene][m] = {k: a[k] for k in a if k.split("_std")[0] in FURNITURE + ("sdf_error_cm",)}
+            lines.append(f"| {scene} | {LABELS.get(m, m)} | {_cell(a, 'near_furniture_share', 1, 100)} | "
+                         f"{_cell(a, 'sdf_error_near_furniture_cm', 2)} | "
+                         f"{_cell(a, 'near_furniture_unobserved_share', 1, 100)} | "
+                         f"{_cell(a, 'sdf_error_near_furniture_unobserved_cm', 2)} | "
+                         f"{_cell(a, 'sdf_error_away_from_furniture_cm', 2)} | {_cell(a, 'sdf_error_cm', 2)} |")
+        if not data["scenes"][scene]:
+            data["unlabelled"][scene] = NO_LABELS
+            lines.append(f"| {scene} | every method | n/a | n/a | n/a | n/a | n/a | n/a |")
+    if data["unlabelled"]:
+        lines += ["", f"n/a ({', '.join(data['unlabelled'])}): {NO_LABELS}."]
     return "\n".join(lines) + "\n", data
 
 
@@ -243,9 +311,10 @@ def write_json(path: Path, obj) -> None:
 
 
 def write_tables(out: Path, results: dict) -> dict[str, str]:
-    """table1/1b/2/3 .md and .json under ``out``; returns the markdown by name."""
+    """table1/1b/1c/2/3 .md and .json under ``out``; returns the markdown by name."""
     md = {}
-    for name, fn in (("table1", table1), ("table1b", table1b), ("table2", table2), ("table3", table3)):
+    for name, fn in (("table1", table1), ("table1b", table1b), ("table1c", table1c), ("table2", table2),
+                     ("table3", table3)):
         text, data = fn(results)
         (out / f"{name}.md").write_text(text)
         write_json(out / f"{name}.json", data)

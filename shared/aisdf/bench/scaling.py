@@ -27,7 +27,9 @@ published per second while walking (changed only, and republishing everything), 
 errors above, the share of the whole map's points where the answer is more than 5 cm above
 the exact SDF (``TOO_HIGH_M``: the side on which a planner would cut a corner; a mean error
 hides it), where the error is (the share of points whose nearest surface no keyframe
-measured, ``UNMEASURED_M``, their part of the mean error and the error on the others), and
+measured, ``UNMEASURED_M``, their part of the mean error and the error on the others), the
+error near furniture and away from it (``evaluation.near_furniture_mask``: the points whose
+nearest surface is furniture or within 30 cm of it; the buildings' labels), and
 the criteria evaluated per mapper (``scaling_report.py``). ``run`` writes
 ``scaling.json`` and ``scaling.md`` under ``out``; ``--seeds N`` walks every scene N times
 (seeds seed .. seed + N - 1) and judges the mean (``scaling_seeds.py``); ``--quick`` is a

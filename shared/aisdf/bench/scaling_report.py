@@ -6,6 +6,7 @@ from __future__ import annotations
 import numpy as np
 
 from .scaling_config import LABELS
+from .evaluation import NEAR_FURNITURE_M
 from .scaling_walk import TOO_HIGH_M
 
 
@@ -40,6 +41,19 @@ def _crit(value: float | None, limit: float) -> dict:
 
 def _ratio(a: float | None, b: float | None) -> float | None:
     return None if a is None or not b else a / b
+
+
+def _f2(v: float | None) -> str:
+    return "-" if v is None else f"{v:.2f}"
+
+
+def _near_cells(r: dict) -> str:
+    """The near-furniture split of one run: share; near, walk end / end; away, the same ("-": no labels)."""
+    w, e = r.get("near_furniture_walk_end"), r.get("near_furniture_end")
+    if not w or not e:
+        return "-"
+    return (f"{e['points_pct']:.1f} %; {_f2(w['error_cm'])} / {_f2(e['error_cm'])}; "
+            f"{_f2(w['away_error_cm'])} / {_f2(e['away_error_cm'])}")
 
 
 def _mb(b: int) -> str:
@@ -101,6 +115,12 @@ def report(res: dict) -> str:
          "part of the error / the error on the others (cm)",
          lambda r: f"{r['unmeasured_end']['points_pct']:.1f} %: {r['unmeasured_end']['error_cm']:.2f} / "
          f"{r['unmeasured_end']['rest_error_cm']:.2f}" if r.get("unmeasured_end") else "-"),
+        (f"points near furniture (its nearest surface furniture, or within {100 * NEAR_FURNITURE_M:g} cm of it) "
+         f"({src}): % of points; error there, end of the walk / +{cfg['tail_s']:g} s; away from furniture, the same (cm)",
+         _near_cells),
+        (f"  ... near furniture with an unmeasured nearest surface, +{cfg['tail_s']:g} s: % of points; error there (cm)",
+         lambda r: f"{r['near_furniture_end']['unmeasured_pct']:.1f} %; {_f2(r['near_furniture_end']['unmeasured_error_cm'])}"
+         if "unmeasured_pct" in (r.get("near_furniture_end") or {}) else "-"),
     ]
     for label, fn in rows:
         cells = []

@@ -79,11 +79,13 @@ class _Scorer:
     that treats unknown space as occupied, protocol 1.6); and, given
     ``measured``, where the error of ``source``'s answer is: the share of points whose
     nearest surface no keyframe measured (``UNMEASURED_M``), their part of the mean error
-    and the mean error on the other points.
+    and the mean error on the other points. ``near_furniture`` (N,) bool (the labelled
+    buildings, ``evaluation.near_furniture_mask``; None: unknown): ``evaluate_split`` also
+    gives the error near furniture and away from it.
     ``score(pipe, source, measured)`` one of the means."""
 
-    def __init__(self, points: np.ndarray, gt: np.ndarray):
-        self.points, self.gt = points, gt
+    def __init__(self, points: np.ndarray, gt: np.ndarray, near_furniture: np.ndarray | None = None):
+        self.points, self.gt, self.near_furniture = points, gt, near_furniture
 
     def _answers(self, pipe, measured=None) -> tuple[dict[str, np.ndarray], np.ndarray | None]:
         """The answers, and the distance to the nearest observed surface (surfel or measured
@@ -111,6 +113,13 @@ class _Scorer:
         for ``source``'s answer, given ``measured``: {"points_pct": share of points whose nearest
         surface is unmeasured, "error_cm": their part of the mean error, "rest_error_cm": the
         mean error on the others} (empty without ``measured``)."""
+        return self.evaluate_split(pipe, measured, source)[:3]
+
+    def evaluate_split(self, pipe, measured=None, source: str = "served") -> tuple[dict, dict, dict, dict]:
+        """``evaluate``'s three, and for ``source``'s answer near furniture: {"points_pct": share of
+        points near furniture, "error_cm": the mean error there, "away_error_cm": elsewhere, and
+        given ``measured`` "unmeasured_pct" / "unmeasured_error_cm": near furniture with an
+        unmeasured nearest surface} (empty where the points carry no labels)."""
         ans, observed = self._answers(pipe, measured)
         mae = {k: round(100.0 * float(np.mean(np.abs(v - self.gt))), 3) for k, v in ans.items()}
         high = {k: round(100.0 * float(np.mean(v - self.gt > TOO_HIGH_M)), 3) for k, v in ans.items()}
@@ -121,7 +130,15 @@ class _Scorer:
             unmeasured = {"points_pct": round(100.0 * float(m.mean()), 3),
                           "error_cm": round(100.0 * float(err[m].sum()) / len(err), 3),
                           "rest_error_cm": round(100.0 * float(err[~m].mean()), 3) if (~m).any() else 0.0}
-        return mae, high, unmeasured
+        near: dict = {}
+        if self.near_furniture is not None:
+            err, nf = np.abs(ans[source] - self.gt), self.near_furniture
+            mean = lambda k: round(100.0 * float(err[k].mean()), 3) if k.any() else None  # noqa: E731
+            near = {"points_pct": round(100.0 * float(nf.mean()), 3), "error_cm": mean(nf), "away_error_cm": mean(~nf)}
+            if observed is not None:
+                um = nf & (observed - np.abs(self.gt) > UNMEASURED_M)
+                near.update(unmeasured_pct=round(100.0 * float(um.mean()), 3), unmeasured_error_cm=mean(um))
+        return mae, high, unmeasured, near
 
     def score(self, pipe, source: str = "served", measured=None) -> float:
         return self.evaluate(pipe, measured, source)[0][source]
@@ -171,8 +188,11 @@ def _pool_record(pipe, pooled: MeasuredSurface | None, add_ms: list[float]) -> d
 def whole_scorer(seq, frames: list[dict], cfg: ScalingConfig) -> _Scorer:
     from ..metrics import eval_points
 
+    from .evaluation import near_furniture_mask
+
     p = eval_points(frames, n_points=cfg.n_points, every=1, rng=np.random.default_rng([cfg.seed, 7]), far_margin=0.1)
-    return _Scorer(p, seq.gt_sdf(p))
+    near = near_furniture_mask(seq.scene, p) if getattr(seq.scene, "kinds", None) is not None else None
+    return _Scorer(p, seq.gt_sdf(p), near)
 
 
 def _room_scorer(seq, frames: list[dict], room: str, cfg: ScalingConfig) -> _Scorer | None:
@@ -267,8 +287,9 @@ def walk(pipe, seq, frames: list[dict], stream_per_kf: float, cfg: ScalingConfig
                 else:
                     key = "walk_end" if kind == "walk_end" else "end"
                     pts = measured_of(pipe, measured)
-                    both, high, unmeasured = whole.evaluate(pipe, pts, cfg.source)
+                    both, high, unmeasured, near = whole.evaluate_split(pipe, pts, cfg.source)
                     rec[f"unmeasured_{key}"] = unmeasured
+                    rec[f"near_furniture_{key}"] = near
                     rec[f"error_{key}_cm"] = both[cfg.source]
                     rec[f"error_{key}_by_source_cm"] = both
                     rec[f"too_high_{key}_pct"] = high[cfg.source]

@@ -8,8 +8,9 @@
 For every scene (and seed) the stream is replayed once through every model in lockstep
 (``methods.run_stream``); at checkpoints over sequence time every method is scored on the
 same points (``evaluation.EvalSet``; at the end also split by whether each point's nearest
-true surface was observed, Table Ib); at the end the folder gets table1/1b/2/3 .md/.json,
-error_over_time_<scene>.png, sdf_slice_<scene>.png, meshes/<scene>/<method>.ply,
+true surface was observed, Table Ib, and on the synthetic buildings by whether it is near
+furniture, Table I's near-furniture rows and Table Ic); at the end the folder gets
+table1/1b/1c/2/3 .md/.json, error_over_time_<scene>.png, sdf_slice_<scene>.png, meshes/<scene>/<method>.ply,
 results.json (everything measured) and config.json (the resolved configuration,
 versions, machine).
 """
