@@ -2,16 +2,32 @@
 
 from __future__ import annotations
 
+import re
+import secrets
+import socket
 from typing import Literal
 
-from pydantic import Field
+from pydantic import Field, field_validator
 
+from aisdf import keys
 from aisdf.config import ServiceConfig
 from aisdf.structure.fusion import DEFAULT_FUSE_RADIUS
 
 
+def default_replica_id() -> str:
+    """``<hostname>-<6 random hex digits>``, new at every start and kept nowhere: replicas on one
+    host (or in containers sharing the host's name) never collide, and an operator sees the host."""
+    host = re.sub(r"[^A-Za-z0-9_.-]", "-", socket.gethostname().split(".")[0])[:48] or "query"
+    return f"{host}-{secrets.token_hex(3)}"
+
+
 class QueryConfig(ServiceConfig):
     """Settings of ``aisdf-query``."""
+
+    replica_id: str | None = Field(None, description="protocol 1.12: this replica's id in "
+                                   "query/replica/<id>/{sdf,mesh} and its liveliness tokens (one key chunk: letters, "
+                                   "digits, '-', '_', '.'); None = <hostname>-<6 random hex digits>, new at every "
+                                   "start. Give each replica in a namespace its own")
 
     max_points: int = Field(1_000_000, ge=1, description="largest batch answered; above it: too_large")
     chunk_points: int = Field(65_536, ge=1, description="points evaluated per network pass on a GPU (bounds memory); "
@@ -58,3 +74,8 @@ class QueryConfig(ServiceConfig):
                            "at the nearest measured point; docs/experiments/scaling-notes.md, The measured surface); false = the 1.3 answer")
     workers: int = Field(2, ge=1, le=64, description="threads evaluating sdf requests")
     queue_max: int = Field(32, ge=1, description="sdf requests waiting; beyond, an immediate 'busy' error reply")
+
+    @field_validator("replica_id")
+    @classmethod
+    def _replica_id(cls, v: str | None) -> str | None:
+        return None if v is None else keys.validate_replica_id(v)

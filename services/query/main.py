@@ -14,6 +14,14 @@ submap) and ``map/index``. A late joiner gets ``map/submaps/**`` (every submap's
 and ``map/index``; when an index lists a submap at a version newer than the one held (a
 lost sample), that submap is fetched with a ``get`` on its key (on the fetcher thread,
 never on Zenoh's). A malformed message is logged and skipped.
+
+Replicas (protocol 1.12): several query services may share one namespace. Each has a
+replica id (``replica_id``, default ``<hostname>-<6 hex digits>``), answers its own
+``query/replica/<id>/sdf`` and ``.../mesh`` beside the shared ``query/sdf`` and ``query/mesh``,
+and announces itself with the liveliness tokens ``query/replica/<id>`` and
+``status/query/<id>``. Every query key is declared complete, so a ``get`` with Zenoh's default
+target (best matching) on a shared key is evaluated by one replica only. ``info/query``
+carries the id and ``evaluated`` (requests its workers evaluated).
 """
 
 from __future__ import annotations
@@ -23,7 +31,6 @@ import logging
 import queue
 import threading
 import time
-import uuid
 
 import torch
 
@@ -31,7 +38,7 @@ from aisdf import keys, protocol, query_messages, transport
 from aisdf.config import add_common_args, config_from_args, service_setup
 from aisdf.query.engine import QueryEngine
 
-from .config import QueryConfig
+from .config import QueryConfig, default_replica_id
 
 log = logging.getLogger("aisdf.query")
 INFO_KEY = "info/query"
@@ -50,7 +57,9 @@ class QueryNode:
         # planners first: while requests wait for a worker, a trailing bake answers
         self.engine.waiting = lambda: max(0, self.pending - cfg.workers)
         self.ns = cfg.namespace
+        self.replica_id = cfg.replica_id or default_replica_id()
         self.answered = 0
+        self.evaluated = 0  # requests the workers evaluated (answered, or an error while evaluating)
         self.errors = 0
         self.busy = 0
         self._mesh_jobs: queue.Queue = queue.Queue(maxsize=4)
@@ -226,6 +235,8 @@ class QueryNode:
             del item
 
     def _answer(self, q, req) -> None:
+        with self._pending_lock:
+            self.evaluated += 1
         try:
             if isinstance(req, query_messages.SdfRequest):
                 rep = self.engine.answer_sdf(req)
@@ -243,19 +254,23 @@ class QueryNode:
 
     def start(self) -> None:
         max_pts = self.cfg.max_points
+        on_sdf = lambda q: self._accept(q, lambda m: query_messages.SdfRequest.from_msg(m, max_pts), self._sdf_jobs)  # noqa: E731
+        on_mesh = lambda q: self._accept(q, query_messages.MeshRequest.from_msg, self._mesh_jobs)  # noqa: E731
+        rid = self.replica_id
         self._decls = [
             self._subscriber(keys.MAP_WEIGHTS, self._on_weights),
             self._subscriber(keys.MAP_SURFELS, self._on_surfels),
             self._subscriber(f"{keys.MAP_SUBMAPS}/*", self._on_submap, with_key=True),
             self._subscriber(keys.MAP_INDEX, self._on_index),
-            self.session.declare_queryable(
-                keys.key(self.ns, keys.QUERY_SDF),
-                lambda q: self._accept(q, lambda m: query_messages.SdfRequest.from_msg(m, max_pts), self._sdf_jobs)),
-            self.session.declare_queryable(
-                keys.key(self.ns, keys.QUERY_MESH),
-                lambda q: self._accept(q, query_messages.MeshRequest.from_msg, self._mesh_jobs)),
+            # complete (1.12): a best-matching get (Zenoh's default) reaches one replica only
+            self.session.declare_queryable(keys.key(self.ns, keys.QUERY_SDF), on_sdf, complete=True),
+            self.session.declare_queryable(keys.key(self.ns, keys.QUERY_MESH), on_mesh, complete=True),
+            self.session.declare_queryable(keys.replica_key(self.ns, rid, "sdf"), on_sdf, complete=True),
+            self.session.declare_queryable(keys.replica_key(self.ns, rid, "mesh"), on_mesh, complete=True),
             transport.serve(self.session, keys.key(self.ns, INFO_KEY), lambda _req: self.info(), allow_empty=True),
-            self.session.liveliness().declare_token(keys.status_key(self.ns, "query", uuid.uuid4().hex[:8])),
+            self.session.liveliness().declare_token(keys.status_key(self.ns, "query", rid)),
+            # last: planners that see the token find the replica's queryables declared
+            self.session.liveliness().declare_token(keys.replica_key(self.ns, rid)),
         ]
         for t in self._threads:
             t.start()
@@ -263,11 +278,12 @@ class QueryNode:
 
     def info(self) -> dict:
         st, bk = self.engine.state, self.engine.baked
-        return {"v": protocol.VERSION, "version": st.version if st else None, "epoch": st.epoch if st else None,
+        return {"v": protocol.VERSION, "replica": self.replica_id, "version": st.version if st else None, "epoch": st.epoch if st else None,
                 "baked_version": bk.state.version if bk else None, "bakes": self.engine.baker.bakes,
                 "bake_extensions": self.engine.baker.extensions,
                 "bake_failures": self.engine.baker.failures, "last_bake": self.engine.baker.last,
                 "lag": self.engine.lag(), "answered": self.answered, "errors": self.errors, "busy": self.busy,
+                "evaluated": self.evaluated,
                 "queued": self._sdf_jobs.qsize(), "held": self.engine.held,
 
                 "submaps": len(st.submaps.submaps) if st is not None and st.submaps is not None else None,
@@ -309,13 +325,14 @@ def main(cfg: QueryConfig, stop: threading.Event | None = None) -> None:
     with transport.open_session(cfg.zenoh) as session:
         node = QueryNode(cfg, session)
         node.start()
-        log.info("query service up under '%s' on %s", cfg.namespace, node.engine.device)
+        log.info("query service up under '%s' on %s, replica %s", cfg.namespace, node.engine.device, node.replica_id)
         last = time.monotonic()
         while not stop.wait(0.5):
             if time.monotonic() - last > 10:
                 i = node.info()
-                log.info("map version %s (baked %s, lag %s), %d answered, %d errors, %d busy", i["version"],
-                         i["baked_version"], i["lag"], node.answered, node.errors, node.busy)
+                log.info("map version %s (baked %s, lag %s), %d evaluated, %d answered, %d errors, %d busy",
+                         i["version"], i["baked_version"], i["lag"], node.evaluated, node.answered, node.errors,
+                         node.busy)
                 last = time.monotonic()
         node.stop()
 
@@ -329,8 +346,11 @@ def cli(argv: list[str] | None = None) -> None:
     add_common_args(p)
     p.add_argument("--max-points", type=int, help="largest batch answered (default 1000000)")
     p.add_argument("--device", choices=["auto", "cpu", "cuda"])
+    p.add_argument("--replica-id", help="protocol 1.12: this replica's id, one key chunk (default "
+                   "<hostname>-<6 random hex digits>, new at every start)")
     args = p.parse_args(argv)
-    cfg = config_from_args(QueryConfig, args, {"max_points": args.max_points, "device": args.device})
+    cfg = config_from_args(QueryConfig, args, {"max_points": args.max_points, "device": args.device,
+                                               "replica_id": args.replica_id})
     stop = service_setup(cfg, "query")
     main(cfg, stop)
 

@@ -9,6 +9,14 @@
 
 Protocol errors come back as :class:`aisdf.protocol.ProtocolError` with ``.code``
 (``bad_request``, ``too_large``, ``no_map``, ``internal``, ``busy``).
+
+Query replicas (protocol 1.12): where query services announce replica tokens
+(``query/replica/<id>``), each request goes to one live replica, spread over them (the one
+this client has the fewest requests in flight to, then the least recently asked), and fails
+over to another on ``busy``, ``no_map``, a timeout or a replica gone, at most
+``max_attempts`` replicas and never beyond ``timeout`` in all (``aisdf.replicas``). With no
+replica token visible (query services before 1.12) it asks the shared ``query/sdf`` as
+before; ``replicas=False`` always does.
 """
 
 from __future__ import annotations
@@ -20,9 +28,11 @@ import numpy as np
 
 from . import keys, protocol, query_messages, transport
 from .config import ZenohOptions
+from .replicas import ReplicaGone, Replicas, ask
 from .structure.surfel_types import Surfels
 
 ProtocolError = protocol.ProtocolError
+FAILOVER = ("busy", "no_map")  # error replies another replica may not give
 
 
 class SdfClient:
@@ -35,19 +45,80 @@ class SdfClient:
         connect: list[str] | None = None,
         timeout: float = 10.0,
         max_batch: int | None = None,
+        replicas: bool = True,
+        max_attempts: int = 3,
+        attempt_timeout: float | None = None,
     ):
+        """``replicas`` (1.12): spread requests over the query replicas announced in the
+        namespace and fail over between them; ``max_attempts``: replicas tried per request at
+        most; ``attempt_timeout``: how long one replica may take while another is left to try
+        (default half of ``timeout``; the request as a whole never takes longer than ``timeout``)."""
         opts = zenoh or ZenohOptions()
         if connect:
             opts = opts.model_copy(update={"connect": list(connect)})
+        if max_attempts < 1:
+            raise ValueError(f"max_attempts must be at least 1, got {max_attempts}")
         self.namespace = keys.validate_namespace(namespace)
         self.timeout = timeout
         self.max_batch = max_batch
+        self.max_attempts = max_attempts
+        self.attempt_timeout = attempt_timeout
+        self.failovers = 0  # requests answered by another replica than the first one asked
         self._session = transport.open_session(opts)
+        self._replicas = Replicas(self._session, self.namespace) if replicas else None
 
     def close(self) -> None:
+        if self._replicas is not None:
+            self._replicas.close()
+            self._replicas = None
         if self._session is not None:
             self._session.close()
             self._session = None
+
+    def replica_ids(self) -> list[str]:
+        """The query replicas seen alive (protocol 1.12; empty: the shared key answers)."""
+        return [] if self._replicas is None else self._replicas.ids()
+
+    def _request(self, name: str, msg: dict, timeout: float) -> dict:
+        """``msg`` to ``query/<name>``: to one replica at a time when replicas are announced
+        (failing over as the module says), else to the shared key."""
+        shared = self._key({"sdf": keys.QUERY_SDF, "mesh": keys.QUERY_MESH}[name])
+        reps = self._replicas
+        if reps is None or not reps.ids():
+            return transport.query(self._session, shared, msg, timeout)
+        payload = protocol.pack(msg)
+        end = time.monotonic() + timeout
+        tried: list[str] = []
+        last: Exception | None = None
+        while len(tried) < self.max_attempts:
+            left = end - time.monotonic()
+            rid = reps.pick(tried) if left > 0 else None
+            if rid is None:
+                break
+            tried.append(rid)
+            others = len(tried) < self.max_attempts and any(r not in tried for r in reps.ids())
+            t = min(left, self.attempt_timeout or timeout / 2) if others else left
+            no_map = False
+            try:
+                out = ask(self._session, reps, rid, name, payload, t)
+                if len(tried) > 1:
+                    self.failovers += 1
+                return out
+            except ProtocolError as e:
+                if e.code not in FAILOVER:
+                    raise
+                no_map, last = e.code == "no_map", e
+            except TimeoutError as e:  # ReplicaGone too
+                last = e
+            finally:
+                reps.done(rid, no_map)
+        left = end - time.monotonic()
+        if (last is None or isinstance(last, TimeoutError)) and left > 0.05:
+            # every replica asked vanished or timed out: whoever answers the shared key now
+            return transport.query(self._session, shared, msg, left)
+        if isinstance(last, ReplicaGone):
+            raise TimeoutError(f"no reply on {shared} within {timeout:.1f} s: {last}") from None
+        raise last if last is not None else TimeoutError(f"no reply on {shared} within {timeout:.1f} s")
 
     def __enter__(self) -> "SdfClient":
         return self
@@ -99,8 +170,7 @@ class SdfClient:
             req = query_messages.SdfRequest(pts[i:i + step], gradient, collision_epsilon, source,
                                             None if radii is None else radii[i:i + step], observed, exact, unknown,
                                             fresh=fresh)
-            parts.append(query_messages.SdfReply.from_msg(transport.query(self._session, self._key(keys.QUERY_SDF),
-                                                                    req.to_msg(), self.timeout)))
+            parts.append(query_messages.SdfReply.from_msg(self._request("sdf", req.to_msg(), self.timeout)))
         if len(parts) == 1:
             return parts[0]
         cat = lambda name: None if getattr(parts[0], name) is None else np.concatenate([getattr(p, name) for p in parts])  # noqa: E731
@@ -118,8 +188,7 @@ class SdfClient:
         b = query_messages.Box.around(min_corner, size, resolution)
         req = query_messages.SdfRequest(np.zeros((0, 3), np.float32), gradient, collision_epsilon, source, None,
                                         observed, exact, unknown, b, fresh)
-        msg = transport.query(self._session, self._key(keys.QUERY_SDF), req.to_msg(), self.timeout)
-        return query_messages.SdfReply.from_msg(msg)
+        return query_messages.SdfReply.from_msg(self._request("sdf", req.to_msg(), self.timeout))
 
     def sdf(self, points_W: np.ndarray, source: str = "fused") -> np.ndarray:
         return self.query(points_W, source=source).sdf
@@ -128,8 +197,7 @@ class SdfClient:
         return self.query(points_W, collision_epsilon=epsilon).collision
 
     def mesh(self, resolution: float | None = None, timeout: float = 60.0) -> query_messages.MeshReply:
-        msg = transport.query(self._session, self._key(keys.QUERY_MESH), query_messages.MeshRequest(resolution).to_msg(),
-                              timeout)
+        msg = self._request("mesh", query_messages.MeshRequest(resolution).to_msg(), timeout)
         return query_messages.MeshReply.from_msg(msg)
 
     def surfel_map(self, timeout: float = 2.0) -> protocol.SurfelMap | None:
