@@ -159,3 +159,18 @@ def ask(session: zenoh.Session, replicas: Replicas, rid: str, name: str, payload
     if done.is_set():
         raise ReplicaGone(f"replica {rid} closed the query on {key} without a reply")
     raise TimeoutError(f"no reply from replica {rid} on {key} within {timeout:.1f} s")
+
+
+def replica_infos(session: zenoh.Session, namespace: str, timeout: float = 3.0) -> dict[str, dict]:
+    """Every query replica's ``info/query`` (an extension), by replica id: a ``get`` with
+    consolidation off, one reply each (a service before 1.12 has no ``replica``: ``"?"``)."""
+    out = {}
+    for r in session.get(keys.key(namespace, "info/query"), payload=protocol.pack({"v": protocol.VERSION}),
+                         encoding=transport.ENCODING, timeout=timeout, consolidation=zenoh.ConsolidationMode.NONE):
+        if r.ok is not None:
+            try:
+                m = protocol.unpack(transport.payload_bytes(r.ok.payload))
+            except protocol.ProtocolError:
+                continue
+            out[str(m.get("replica", "?"))] = m
+    return out

@@ -26,6 +26,7 @@ import stranger_client as sc
 from aisdf import protocol
 from aisdf.client import SdfClient
 from aisdf.metrics import eval_points
+from aisdf.replicas import replica_infos
 from aisdf.stack import Stack, wait_for
 from helpers.small_map import train_small_map
 
@@ -38,13 +39,7 @@ torch.set_num_threads(1)
 
 def infos(s) -> dict[str, dict]:
     """Every replica's ``info/query``, by replica id (one reply each: consolidation off)."""
-    out = {}
-    for r in s.get(f"{NS}/info/query", payload=protocol.pack({"v": 1}), encoding=sc.ENC, timeout=3.0,
-                   consolidation=zenoh.ConsolidationMode.NONE):
-        if r.ok is not None:
-            m = protocol.unpack(r.ok.payload.to_bytes())
-            out[m["replica"]] = m
-    return out
+    return replica_infos(s, NS)
 
 
 def evaluated(s) -> dict[str, int]:
