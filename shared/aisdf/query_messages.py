@@ -115,6 +115,7 @@ class SdfRequest:
     unknown: bool = False  # protocol 1.6: also answer each point's distance to unobserved space
     box: Box | None = None  # protocol 1.9: the points are this lattice (sent as the box, not the points)
     fresh: bool = True  # protocol 1.10: False = the bake answers even when it trails (no answer from the newest map)
+    predicted: bool = False  # protocol 1.13: also answer, per point, whether the distance rests on a predicted surface
 
     def to_msg(self) -> dict:
         msg = {"v": VERSION, "gradient": bool(self.gradient), "source": self.source}
@@ -140,6 +141,8 @@ class SdfRequest:
             msg["unknown"] = True
         if not self.fresh:
             msg["fresh"] = False
+        if self.predicted:
+            msg["predicted"] = True
         return msg
 
     @classmethod
@@ -177,7 +180,8 @@ class SdfRequest:
         exact = _get(msg, "exact", bool, False, "a boolean")
         unknown = _get(msg, "unknown", bool, False, "a boolean")
         fresh = _get(msg, "fresh", bool, True, "a boolean")
-        return cls(points, gradient, eps, source, radii, observed, exact, unknown, box, fresh)
+        predicted = _get(msg, "predicted", bool, False, "a boolean")
+        return cls(points, gradient, eps, source, radii, observed, exact, unknown, box, fresh, predicted)
 
 
 @dataclass
@@ -193,6 +197,7 @@ class SdfReply:
     unknown: np.ndarray | None = None  # (N,) metres to unobserved space, when asked (1.6)
     map_age_s: float | None = None  # seconds since the map state behind the values arrived (1.7)
     box: Box | None = None  # the request's lattice (1.9); the arrays are its samples in C order
+    predicted: np.ndarray | None = None  # (N,) bool, when asked (1.13): the distance is to a predicted surface
 
     def grid(self, name: str = "sdf") -> np.ndarray:
         """A box reply's array as a grid: (nx, ny, nz) (gradient: (nx, ny, nz, 3))."""
@@ -216,6 +221,8 @@ class SdfReply:
             msg["map_age_s"] = float(self.map_age_s)
         if self.box is not None:
             msg["box"] = self.box.to_msg()
+        if self.predicted is not None:
+            msg["predicted"] = encode_array(np.asarray(self.predicted, dtype=np.uint8), "|u1")
         return msg
 
     @classmethod
@@ -233,7 +240,9 @@ class SdfReply:
         box = Box.from_reply(msg["box"]) if msg.get("box") is not None else None
         if box is not None and box.count != n:
             raise _bad(f"a reply's box of {list(box.shape)} samples carries {n} distances")
-        return cls(mv, sdf, grad, coll, obs, baked, epoch, unk, None if age is None else float(age), box)
+        pred = (decode_array(msg["predicted"], "predicted", ("|u1",), (n,)).astype(bool) if "predicted" in msg
+                else None)
+        return cls(mv, sdf, grad, coll, obs, baked, epoch, unk, None if age is None else float(age), box, pred)
 
 
 @dataclass

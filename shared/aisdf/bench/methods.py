@@ -80,12 +80,14 @@ METHODS: dict[str, tuple[str, str]] = {
     "aisdf": ("aisdf", "implicit"),
     "aisdf+explicit": ("aisdf", "fused"),
     "aisdf-served": ("aisdf", "served"),
+    "aisdf-served-noprior": ("aisdf", "served-noprior"),
     "aisdf-baked": ("aisdf", "baked"),
 }
 LABELS: dict[str, str] = {
     "voxblox": "Voxblox-like TSDF/ESDF 5.5 cm", "voxel-5cm": "Voxel TSDF/ESDF 5 cm",
     "voxel-2cm": "Voxel TSDF/ESDF 2 cm", "isdf": "iSDF", "aisdf": "AiSDF (w/o explicit map)",
     "aisdf+explicit": "AiSDF (w. explicit map)", "aisdf-served": "AiSDF served (default answer)",
+    "aisdf-served-noprior": "AiSDF served, no layout prior",
     "aisdf-baked": "AiSDF served, baked",
 }
 # Table II rows: (surfel mask, surfel loss) -> model; both off is iSDF, both on AiSDF.
@@ -208,6 +210,7 @@ class NeuralRunner(Runner):
         self._ms: dict[str, list[float]] = defaultdict(list)  # the pipeline's own per-module timings
         self._wall: dict[str, list[float]] = defaultdict(list)  # measured here: whole step / keyframe add
         self.keyframe_ids: list[int] = []
+        self.layout_prior = True  # the served answer caps at the predicted layout, as the query service does
 
     def see(self, frame, train):
         added = False
@@ -267,6 +270,12 @@ class NeuralRunner(Runner):
             f, g = fused_sdf(p, f, g, self.surfels(), DEFAULT_FUSE_RADIUS)
         elif view == "served":
             f, g = self.served(p, f, g)
+        elif view == "served-noprior":
+            prior, self.layout_prior = self.layout_prior, False
+            try:
+                f, g = self.served(p, f, g)
+            finally:
+                self.layout_prior = prior
         elif view == "baked":
             return self.baked(p, grad)
         return f, g
@@ -303,6 +312,26 @@ class NeuralRunner(Runner):
             return None
         return MeasuredPoints(self.pipe.measured_points())
 
+    def layout(self):
+        """The predicted layout points the query service derives from this map (protocol 1.13,
+        ``aisdf.structure.layout``: its surfels and observed space), or None (no prior, as
+        ``layout_prior`` False, or nothing predicted); made again when the map changed."""
+        from .. import protocol
+        from ..query.answer import predicted_layout
+        from ..query.engine import QueryEngine
+
+        if not self.layout_prior or self.pipe.structure is None:
+            return None
+        key = (self.keyframes, self.steps)
+        if getattr(self, "_layout_key", None) != key:
+            # from the map as the service receives it (its surfels, observed space and bounds)
+            eng = QueryEngine(device="cpu", bake=False)
+            for k, data in self.pipe.map_messages(1, changed_only=False, epoch=1):
+                eng.take(k, protocol.unpack(data))
+            self._layout = None if eng.state is None else predicted_layout(eng.state)
+            self._layout_key = key
+        return self._layout
+
     def served(self, p: np.ndarray, f: np.ndarray, g: np.ndarray | None,
                radius: float = DEFAULT_FUSE_RADIUS) -> tuple[np.ndarray, np.ndarray | None]:
         """The query service's default answer from the network's ``f``/``g`` at ``p``
@@ -312,7 +341,7 @@ class NeuralRunner(Runner):
         from ..query.answer import served_answer
         from ..structure.surfel_map import explicit_sdf
 
-        s, measured = self.surfels(), self.measured()
+        s, measured, layout = self.surfels(), self.measured(), self.layout()
         if s is None and measured is None:
             return f, g
         d_e = g_e = None
@@ -320,7 +349,7 @@ class NeuralRunner(Runner):
             d_e, g_e, _ = explicit_sdf(p, s)
             d_e, g_e = d_e.astype(np.float32), g_e.astype(np.float32)
         sf, sg = served_answer(p, f.astype(np.float32), None if g is None else g.astype(np.float32), d_e, g_e,
-                               measured, radius)
+                               measured, radius, layout=layout)
         return sf.astype(np.float64), None if sg is None else sg.astype(np.float64)
 
     def estimated_up(self) -> np.ndarray | None:

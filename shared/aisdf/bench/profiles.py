@@ -23,7 +23,7 @@ from pydantic import Field, field_validator
 from ..config import Model, deep_merge
 
 ALL_SCENES = ["manhattan", "atlanta", "stairs", "replica-office", "7scenes-redkitchen"]
-ALL_METHODS = ["voxel-5cm", "voxel-2cm", "isdf", "aisdf", "aisdf+explicit", "aisdf-served", "aisdf-baked"]
+ALL_METHODS = ["voxel-5cm", "voxel-2cm", "isdf", "aisdf", "aisdf+explicit", "aisdf-served", "aisdf-served-noprior", "aisdf-baked"]
 
 PROFILES: dict[str, dict[str, Any]] = {
     "quick": {

@@ -114,7 +114,9 @@ def table1(results: dict) -> tuple[str, dict]:
     if "aisdf-served" in methods or "aisdf-baked" in methods:
         lines += ["", "AiSDF served: the query service's default answer (`source: \"fused\"`), composed by "
                   "`aisdf.query.answer.served_answer` from the network, the signed distance to the global surfels "
-                  "(within 2 m) and the mapper's measured points, as the service composes an exact answer; by "
+                  "(within 2 m), the mapper's measured points and the layout predicted beyond what was observed "
+                  "(`aisdf.structure.layout`; the no-prior column leaves it out), as the service composes an exact "
+                  "answer; by "
                   "default the service answers from its bake of that field (trilinear, within 5 mm where "
                   "refined): " + ("the baked column is that reply (a query engine that baked the map)."
                                   if "aisdf-baked" in methods else "not in this table (`--methods aisdf-baked`).")]

@@ -31,8 +31,8 @@ from ..baked import BakeConfig, BakedField, bake
 from ..memory import trim
 from ..structure.fusion import DEFAULT_FUSE_RADIUS
 from ..structure.surfel_types import Surfels
-from .answer import served_answer
-from .changes import measured_changes, measured_dirty, submaps_changed_at, surfel_dirty
+from .answer import predicted_layout, served_answer
+from .changes import layout_changes, measured_changes, measured_dirty, submaps_changed_at, surfel_dirty
 from .mapstate import MapState
 
 log = logging.getLogger(__name__)
@@ -44,6 +44,7 @@ class BakedMap:
     state: MapState  # the map it was baked from (its network answers points outside the bake)
     field: BakedField
     surfel_ref: Surfels | None = None  # the surfels its samples were computed with (within bake_surfel_tol)
+    layout: object = None  # the predicted layout points its samples were capped with (None: none)
 
 
 def _nowhere(points: np.ndarray) -> np.ndarray:
@@ -71,6 +72,7 @@ class Baker:
         self.nice = nice
         self.surfel_tol = float(surfel_tol)
         self.enabled = enabled
+        self.layout_prior = True  # 1.13: cap answers at the predicted layout (structure.layout)
         self.warm_unknown = False  # 1.6: a planner asked for unknown distances; index each map's observed space
         self.baked: BakedMap | None = None  # swapped whole under _lock; readers take the reference
         self.bakes = 0
@@ -93,15 +95,21 @@ class Baker:
         """Bake again (the surfels changed, the map's order did not)."""
         self._wanted.set()
 
-    def fused_fn(self, state: MapState, chunk: int | None = None):
+    def layout(self, state: MapState | None):
+        """The map's predicted layout points (``answer.predicted_layout``), None without the prior."""
+        return predicted_layout(state) if self.layout_prior and state is not None else None
+
+    def fused_fn(self, state: MapState, chunk: int | None = None, layout=False):
         """points (M, 3) -> (sdf, grad) of the fused field of ``state`` (what ``fused``
         answers), in bounded memory: the network in chunks of ``chunk`` points, the
-        surfels in chunks of candidate pairs."""
+        surfels in chunks of candidate pairs. ``layout``: the predicted layout points to cap
+        with (default: ``state``'s)."""
         from ..structure.surfel_map import ExplicitSdf
 
         chunk = chunk or (BAKE_CHUNK if self.device.type == "cpu" else self.chunk_points)  # on a GPU: big batches
         explicit = ExplicitSdf(state.surfels, chunk_pairs=131_072) if state.surfels is not None and len(
             state.surfels) else None
+        lay = self.layout(state) if layout is False else layout
 
         def fn(pts: np.ndarray):
             sdf = np.empty(len(pts), np.float32)
@@ -111,12 +119,12 @@ class Baker:
                 # One bounded unit of work: the field, the surfels and the measured points of a chunk.
                 q = pts[i:i + chunk]
                 f, g = self.field(state, q, True)
-                if explicit is not None or state.measured is not None:
+                if explicit is not None or state.measured is not None or lay is not None:
                     d_e, g_e = (None, None)
                     if explicit is not None:
                         d_e, g_e, _ = explicit(q.astype(np.float64))
                         d_e, g_e = d_e.astype(np.float32), g_e.astype(np.float32)
-                    f, g = served_answer(q, f, g, d_e, g_e, state.measured, self.fuse_radius)
+                    f, g = served_answer(q, f, g, d_e, g_e, state.measured, self.fuse_radius, layout=lay)
                 sdf[i:i + chunk], grad[i:i + chunk] = f, g
 
             starts = range(0, len(pts), chunk)
@@ -144,7 +152,7 @@ class Baker:
                 self._warm(st)
                 with self._lock:
                     if self.baked is cur:
-                        self.baked = BakedMap(st, cur.field, cur.surfel_ref)
+                        self.baked = BakedMap(st, cur.field, cur.surfel_ref, cur.layout)
             return self.baked
         t = time.perf_counter()
         dirty, ref = self._dirty(cur, st) if cur is not None else (None, st.surfels)
@@ -153,7 +161,8 @@ class Baker:
         # surfel_tol keep the geometry the reused samples were computed with), so new samples
         # agree with the reused ones also where a tiny move flips a gate (the fusion radius, the
         # measured rule's ramp). A full bake of the new surfels differs from it by those moves.
-        fn = self.fused_fn(st if ref is st.surfels else st.with_surfels(ref, st.surfel_version))
+        layout = self.layout(st)  # of the newest surfels: its moves are what _dirty finds
+        fn = self.fused_fn(st if ref is st.surfels else st.with_surfels(ref, st.surfel_version), layout=layout)
         if previous is not None and st.submaps is not None and st.observed is not cur.state.observed:
             # The robot's surroundings first: the space mapped since the bake (its blocks alone,
             # every sample of the bake kept) answers from the newest map within a fraction of the
@@ -162,7 +171,7 @@ class Baker:
             if ext.stats["evaluations"]:
                 with self._lock:
                     if self.baked is cur:
-                        self.baked = BakedMap(cur.state, ext, cur.surfel_ref)
+                        self.baked = BakedMap(cur.state, ext, cur.surfel_ref, cur.layout)
                 previous = ext
                 self.extensions += 1
                 self.last_extension = ext.stats
@@ -171,7 +180,7 @@ class Baker:
         with self._lock:
             cur = self.baked
             if cur is None or cur.state.order <= st.order:
-                self.baked = BakedMap(st, fld, ref)
+                self.baked = BakedMap(st, fld, ref, layout)
         self.bakes += 1
         trim()  # the bake's temporaries (and the previous field, once no reader holds it) back to the system
         self.last = {**fld.stats, "wall_s": round(time.perf_counter() - t, 3), "version": st.version,
@@ -210,11 +219,15 @@ class Baker:
         grow = self.fuse_radius + 0.05
         near_changed_surfel, ref = surfel_dirty(baked.surfel_ref, new.surfels, self.surfel_tol, grow)
         moved = measured_changes(old.submaps, new.submaps, changed) if grid is not None else None
+        new_layout = self.layout(new)
+        layout_moved = layout_changes(baked.layout, new_layout)
 
         def dirty(points: np.ndarray) -> np.ndarray:
             d = near_changed_surfel(points)
             if moved is not None:  # a measured point counts within fuse_radius, where it is the nearest
                 d |= measured_dirty(moved, new.measured, points, grow)
+            if layout_moved is not None:  # the same rule for the predicted points
+                d |= measured_dirty(layout_moved, new_layout, points, grow)
             if grid is not None:
                 d |= submaps_changed_at(grid, cells, old_cells, changed, points)
             return d

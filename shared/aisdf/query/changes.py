@@ -125,6 +125,24 @@ def in_boxes(points: np.ndarray, boxes: np.ndarray, grow: float, cell: float = 1
     return out
 
 
+def layout_changes(old: MeasuredPoints | None, new: MeasuredPoints | None,
+                   tol: float = 0.01) -> MeasuredPoints | None:
+    """The predicted layout points (protocol 1.13, ``structure.layout``) of one map with no
+    point of the other within ``tol`` (both ways), or None when none moved more than that. A
+    bake capped with ``old`` answers within ``tol`` of one capped with ``new`` wherever no
+    such point is the nearest (``measured_dirty``)."""
+    a = np.zeros((0, 3)) if old is None else old.points
+    b = np.zeros((0, 3)) if new is None else new.points
+    if not len(a) and not len(b):
+        return None
+    if not len(a) or not len(b):
+        return MeasuredPoints(b if len(b) else a)
+    gone = a[~np.isfinite(new.distance(a, within=tol))]
+    came = b[~np.isfinite(old.distance(b, within=tol))]
+    out = np.concatenate([gone, came])
+    return MeasuredPoints(out) if len(out) else None
+
+
 def measured_changes(old, new, cells) -> MeasuredPoints | None:
     """The measured points (protocol 1.4) that are in one of the submap sets ``old`` and
     ``new`` but not in the other, among the submaps of ``cells`` (those that changed), or

@@ -47,7 +47,7 @@ from ..structure.measured import MeasuredPoints
 from ..submaps.field import blend
 from ..submaps.grid import SubmapGrid, parse_cell_id
 from ..structure.surfel_types import Surfels
-from .answer import served_answer
+from .answer import predicted_mask, served_answer
 from .baker import Baker, BakedMap
 from .mapstate import MapState, Staleness, SubmapSet, SubmapSnapshot
 from .meshing import tiled_marching_cubes
@@ -354,9 +354,10 @@ class QueryEngine:
                 raise protocol.ProtocolError("no_map", "no explicit planar map yet (no surfels published)")
             return self._explicit(state.surfels, pts)
         sdf, grad = self._field(state, pts, gradient)
-        if source == "fused" and (has_surfels or state.measured is not None):
+        layout = self.baker.layout(state) if source == "fused" else None
+        if source == "fused" and (has_surfels or state.measured is not None or layout is not None):
             d_e, g_e = self._explicit(state.surfels, pts) if has_surfels else (None, None)
-            sdf, grad = served_answer(pts, sdf, grad, d_e, g_e, state.measured, self.fuse_radius)
+            sdf, grad = served_answer(pts, sdf, grad, d_e, g_e, state.measured, self.fuse_radius, layout=layout)
         return sdf, grad
 
     def answer_sdf(self, req: query_messages.SdfRequest) -> query_messages.SdfReply:
@@ -397,6 +398,10 @@ class QueryEngine:
             state = newest
             sdf, grad = self._network_answer(state, pts, req.source, req.gradient)
             baked = False
+        predicted = None
+        if req.predicted:  # 1.13: where the served distance is (within the bake's tolerance) a predicted point's
+            predicted = predicted_mask(self.baker.layout(state) if req.source == "fused" else None, pts, sdf,
+                                       self.fuse_radius, self.baker.config.tol if baked else 0.0)
         if req.radii is not None:
             sdf = sdf - req.radii.astype(np.float32)
         coll = None
@@ -416,7 +421,7 @@ class QueryEngine:
         return query_messages.SdfReply(state.version, sdf.astype(np.float32, copy=False),
                                        grad.astype(np.float32, copy=False) if req.gradient else None, coll, observed,
                                        baked, state.epoch, unknown, round(time.monotonic() - state.received, 3),
-                                       req.box)
+                                       req.box, predicted)
 
     def _bake_trails(self, bk: BakedMap) -> bool:
         """Does the bake trail the newest map by more than ``fresh_s`` (since the first newer
