@@ -69,6 +69,9 @@ class QueryConfig(ServiceConfig):
     bake_surfel_tol: float = Field(0.001, ge=0, description="baked field: a re-bake keeps the samples around a surfel "
                                    "that moved less than this (m; every surfel moves a little whenever the Atlanta "
                                    "frame is refined); 0 = re-evaluate around every change")
+    layout_prior: bool = Field(True, description="protocol 1.13: fused answers are capped at the layout predicted "
+                               "beyond what was observed (floor, ceiling and walls carried on into unobserved space, "
+                               "aisdf.structure.layout; docs/protocol.md, The layout prior); false = 1.12's answers")
     measured: bool = Field(True, description="fused answers use the measured points a submap mapper publishes with "
                            "each submap (protocol 1.4: the surfel distance where nothing was measured nearer, capped "
                            "at the nearest measured point; docs/experiments/scaling-notes.md, The measured surface); false = the 1.3 answer")

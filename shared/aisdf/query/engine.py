@@ -99,7 +99,12 @@ class QueryEngine:
                    cfg.mesh_max_cells, cfg.bake,
                    BakeConfig(block=cfg.bake_block, fine=cfg.bake_fine, band=cfg.bake_band, tol=cfg.bake_tol,
                               near_surface=cfg.bake_near_surface), cfg.bake_threads, cfg.bake_duty, cfg.bake_nice,
-                   cfg.mesh_tile, cfg.bake_surfel_tol, cfg.measured, cfg.fresh_s, cfg.fresh_busy)
+                   cfg.mesh_tile, cfg.bake_surfel_tol, cfg.measured, cfg.fresh_s, cfg.fresh_busy)._with_layout_prior(
+                       cfg.layout_prior)
+
+    def _with_layout_prior(self, on: bool) -> "QueryEngine":
+        self.baker.layout_prior = bool(on)  # 1.13 (the baker composes the fused answer for both paths)
+        return self
 
     @property
     def fuse_radius(self) -> float:
