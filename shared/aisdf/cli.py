@@ -57,6 +57,8 @@ TOOLS = [
      "robot: what the served map says, real processes"),
     ("ros2-out", "aisdf.bench.ros2_out", "what aisdf ros2 publishes (occupancy grid) while a building is walked"),
     ("device", "aisdf.bench.device", "the query engine and both mappers on a GPU against the CPU"),
+    ("rooms", "aisdf.bench.rooms", "an Atlanta room at unseen seeds from 20 keyframes: the served answer with and "
+     "without the layout prior against 2 and 5 cm voxel maps"),
     ("replicas", "aisdf.bench.replicas", "8 planners x 10,000 points against 1 and 2 query replicas, and one killed "
      "(protocol 1.12), real processes"),
 ]
