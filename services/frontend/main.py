@@ -3,7 +3,8 @@ overlap, and publishes them on ``<namespace>/keyframes``.
 
 Reliable by default (protocol 1.2): keyframes are sent only while a mapper's liveliness
 token (``status/mapper/<id>``) is there, held (bounded) while none is, and sent again
-until the mapper acknowledges them on ``keyframes/ack`` (see ``outbox.py``)."""
+until the mapper acknowledges them on ``keyframes/ack`` (see ``outbox.py``). With mapper
+shards (protocol 1.14), until every live owner it needs has acknowledged it."""
 
 from __future__ import annotations
 
@@ -135,7 +136,7 @@ class ReliableSender:
             else:
                 self.mappers.discard(name)
             present = bool(self.mappers)
-            self.outbox.set_mapper_present(present)
+            self.outbox.set_members(self.mappers)
             pending = self.outbox.pending
         log.info("mapper %s %s; %d keyframes unacknowledged%s", name,
                  "is up" if sample.kind == zenoh.SampleKind.PUT else "left", pending,
@@ -144,14 +145,20 @@ class ReliableSender:
 
     def _on_ack(self, sample) -> None:
         try:
-            ack = protocol.KeyframeAck.from_msg(protocol.unpack(transport.payload_bytes(sample.payload)))
+            msg = protocol.unpack(transport.payload_bytes(sample.payload))
+            ack = protocol.KeyframeAck.from_msg(msg)
         except protocol.ProtocolError as e:
             log.warning("ignoring malformed acknowledgement: %s", e.message)
             return
         if ack.sensor != self.cfg.sensor:
             return
+        try:
+            shard = _shard_fields(msg, len(ack.frame_ids))
+        except ValueError as e:
+            log.warning("ignoring malformed acknowledgement: %s", e)
+            return
         with self.lock:
-            self.outbox.ack(ack.frame_ids, ack.rejected)
+            self.outbox.ack(ack.frame_ids, ack.rejected, *shard)
         self._wake.set()
 
     def add(self, msg: dict) -> None:
@@ -188,6 +195,25 @@ class ReliableSender:
         self._thread.join(timeout=5)
         for d in self._decls:
             d.undeclare()
+
+
+def _shard_fields(msg: dict, n: int) -> tuple:
+    """(mapper, touched, held) of an acknowledgement (1.14: a mapper shard's), or the 1.11
+    mapper's (no id: it holds everything). ValueError when they are malformed."""
+    mapper = msg.get("mapper")
+    if mapper is None:
+        return ()
+    touched, held = msg.get("touched"), msg.get("held")
+    if not isinstance(mapper, str) or not mapper or not isinstance(touched, list) or not isinstance(held, list) \
+            or len(touched) != n or len(held) != n:
+        raise ValueError("'mapper' must be an id with 'touched' and 'held' lists, one per frame id")
+    for t in touched:
+        if t is not None and not (isinstance(t, list) and all(isinstance(r, str) for r in t)):
+            raise ValueError("'touched' entries must be lists of region ids or nil")
+    for h in held:
+        if h != "*" and not (isinstance(h, list) and all(isinstance(r, str) for r in h)):
+            raise ValueError("'held' entries must be lists of region ids or '*'")
+    return mapper, touched, held
 
 
 def main(cfg: FrontendConfig, stop: threading.Event | None = None) -> dict:

@@ -5,11 +5,33 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any, ClassVar, Literal
 
-from pydantic import Field, model_validator
+from pydantic import Field, field_validator, model_validator
 
-from aisdf.config import ServiceConfig
+from aisdf.config import Model, ServiceConfig
 from aisdf.mapper.coverage import KeyframePolicy
 from aisdf.submaps.config import SubmapConfig
+
+
+class ClusterConfig(Model):
+    """Mapper shards (protocol 1.14): several mappers in one namespace share the map's regions."""
+
+    enabled: bool = Field(False, description="share the map with the other mappers of the namespace that have it on "
+                          "(each trains the regions it ranks first for, keeps the keyframes of those it ranks "
+                          "second for); off: this mapper maps everything alone, as in 1.11")
+    mapper_id: str | None = Field(None, description="this mapper's stable id (its liveliness token "
+                                  "status/mapper/<id> and its rank in every region); default: the host name and, with "
+                                  "a checkpoint directory, a hash of its absolute path (stable across restarts), else "
+                                  "the host name and the process id")
+    region_cells: int = Field(2, ge=1, description="a region is this many x this many submap cells (one layer)")
+    replicas: int = Field(2, ge=1, le=3, description="owners per region: rank 1 trains, ranks 2.. keep the keyframes")
+    start_wait_s: float = Field(1.5, gt=0, description="at start, how long to wait for the members and the map's frame")
+
+    @field_validator("mapper_id")
+    @classmethod
+    def _id(cls, v):
+        if v is not None and (not v or any(c in v for c in "/*$?#@ ")):
+            raise ValueError(f"mapper_id {v!r}: a non-empty key chunk without / * $ ? # @ or spaces")
+        return v
 
 
 class MapperConfig(ServiceConfig):
@@ -44,6 +66,7 @@ class MapperConfig(ServiceConfig):
     checkpoint_period_s: float = Field(30.0, gt=0, description="how often the checkpoint is written")
     torch_threads: int | None = Field(None, ge=1, description="torch CPU threads; None keeps torch's default")
     idle_sleep_s: float = Field(0.05, gt=0, description="sleep when there is nothing to train on")
+    cluster: ClusterConfig = Field(default_factory=ClusterConfig, description="mapper shards (protocol 1.14)")
 
     @model_validator(mode="before")
     @classmethod

@@ -20,6 +20,8 @@ Zenoh wiring of an :class:`aisdf.mapper.Mapper` (``mapper: submaps`` or ``single
   incarnation's), put on every WeightSnapshot and SurfelMap: maps order by (epoch,
   version). A resumed mapper also continues its versions above the highest it published
   (kept in the checkpoint directory), so receivers that only know ``version`` take it too.
+* Mapper shards (protocol 1.14, ``cluster.enabled``): several mappers in one namespace share
+  the map's regions; acknowledgements name the mapper and the regions held (``shard.py``).
 * ``info/mapper`` (extension, not part of protocol v1): a map of counters and the
   per-module timings, for the demo and operators.
 * ``control/mapper/save`` and ``control/mapper/load`` (extension): map files, ``aisdf.mapfiles``.
@@ -49,6 +51,7 @@ from aisdf.mapper.factory import make_mapper, restore_mapper
 
 from .config import MapperConfig
 from .journal import Incarnation, KeyframeJournal
+from .shard import Shard
 
 log = logging.getLogger("aisdf.mapper")
 INFO_KEY = "info/mapper"
@@ -84,6 +87,11 @@ class MapperNode:
         self._thread = threading.Thread(target=self._train_loop, name="train", daemon=True)
         self._pose_jobs: collections.deque = collections.deque()  # PoseCorrections for the training loop
         self._restore()
+        self.shard = None  # protocol 1.14: this mapper as one shard of the namespace's map
+        if cfg.cluster.enabled:
+            if getattr(self.pipeline, "kind", None) != "submaps":
+                raise SystemExit("aisdf-mapper: cluster.enabled needs the submap mapper (mapper: submaps)")
+            self.shard = Shard(self, cfg.cluster)
 
     # ------------------------------------------------------------------ checkpoints
 
@@ -187,11 +195,19 @@ class MapperNode:
             log.debug("keyframe %s/%d is already in the map", kf.sensor, kf.frame_id)
             self._ack(kf.sensor, [kf.frame_id])
 
-    def _ack(self, sensor: str, frame_ids=(), rejected=()) -> None:
+    def _ack(self, sensor: str, frame_ids=(), rejected=(), regions=None) -> None:
+        """``regions`` (a shard, 1.14): per frame id, (the regions it touches or None, the
+        regions held for or ALL), sent as ``touched`` and ``held`` beside ``mapper``."""
         if self.session is None:
             return
-        transport.put(self.session, keys.key(self.ns, keys.KEYFRAMES_ACK),
-                      protocol.KeyframeAck(self.epoch, sensor, list(frame_ids), list(rejected)).to_msg())
+        msg = protocol.KeyframeAck(self.epoch, sensor, list(frame_ids), list(rejected)).to_msg()
+        if self.shard is not None:
+            msg["mapper"] = self.shard.id
+            if regions is None:
+                regions = [self.shard.ack_info((sensor, int(i))) for i in frame_ids]
+            msg["touched"] = [t for t, _ in regions]
+            msg["held"] = [h for _, h in regions]
+        transport.put(self.session, keys.key(self.ns, keys.KEYFRAMES_ACK), msg)
 
     # ------------------------------------------------------------------ training
 
@@ -202,14 +218,24 @@ class MapperNode:
         return items
 
     def _add_pending(self) -> None:
-        """Add the waiting keyframes to the map, journal them, acknowledge them."""
-        acks: dict[str, tuple[list, list]] = {}
-        for kf, payload in self._take_pending():
-            ok, bad = acks.setdefault(kf.sensor, ([], []))
+        """Add the waiting keyframes to the map, journal them, acknowledge them (a shard: those
+        touching regions it holds; the others feed only its structure)."""
+        acks: dict[str, tuple[list, list, list]] = {}
+        for kf, payload in self._take_pending() + (self.shard.take_fetched() if self.shard else []):
+            ok, bad, regs = acks.setdefault(kf.sensor, ([], [], []))
             if self.is_seen(kf.sensor, kf.frame_id):  # a resend that was waiting with its original
                 self.counts["duplicates"] += 1
                 ok.append(kf.frame_id)
+                regs.append(self.shard.ack_info((kf.sensor, kf.frame_id)) if self.shard else None)
                 continue
+            touched = None
+            if self.shard is not None:
+                hold, touched, held = self.shard.decide(kf)
+                if not hold:  # no region of ours: its Atlanta frame and surfels only
+                    self.shard.observe(kf)
+                    ok.append(kf.frame_id)
+                    regs.append((touched, held))
+                    continue
             try:
                 self.pipeline.add_keyframe(kf)
             except ValueError as e:
@@ -221,18 +247,30 @@ class MapperNode:
                 self.journal.append(payload)  # on disk before it is acknowledged
             with self.lock:
                 self.seen.add((kf.sensor, kf.frame_id))
+            if self.shard is not None:
+                self.shard.kept((kf.sensor, kf.frame_id), payload, touched)
             self.counts["accepted"] += 1
             ok.append(kf.frame_id)
-        for sensor, (ok, bad) in acks.items():
-            self._ack(sensor, ok, bad)
+            regs.append(self.shard.ack_info((kf.sensor, kf.frame_id)) if self.shard else None)
+        for sensor, (ok, bad, regs) in acks.items():
+            self._ack(sensor, ok, bad, regs if self.shard else None)
+
+    def switch_epoch(self, epoch: int) -> None:
+        """A shard adopting the map's epoch (1.14): everything is published again under it."""
+        self.epoch = int(epoch)
+        self._published_all = False
+        if self.incarnation is not None:
+            self.incarnation.save(self.epoch, self.version)
 
     def _publish(self) -> None:
-        self.version += 1
+        self.version = self.shard.next_version(self.version) if self.shard is not None else self.version + 1
         if self.incarnation is not None:  # before anyone can see this version
             self.incarnation.save(self.epoch, self.version)
         # the first publication of an incarnation sends everything (a resumed map, a new epoch)
         msgs = self.pipeline.map_messages(self.version, changed_only=self._published_all, epoch=self.epoch)
         self._published_all = True
+        if self.shard is not None and not self.shard.publishes_surfels():  # one surfel map per map (1.14)
+            msgs = [(n, d) for n, d in msgs if n != keys.MAP_SURFELS]
         for name, data in msgs:
             self._latest[name] = data
             self.session.put(keys.key(self.ns, name), data, encoding=transport.ENCODING)
@@ -243,7 +281,11 @@ class MapperNode:
         dirty = False
         while not self._stop.is_set():
             with self.train_lock:
+                if self.shard is not None:
+                    self.shard.apply()
                 self._add_pending()
+                if self.shard is not None:
+                    self.shard.apply()  # a grid made by this keyframe: the map's frame
                 if self._pose_jobs:
                     self._add_pending()  # keyframes that came in meanwhile: before their corrections
                     self._apply_poses()
@@ -345,11 +387,16 @@ class MapperNode:
 
     # ------------------------------------------------------------------ queries
 
-    def info(self) -> dict:
-        return {"v": protocol.VERSION, "version": self.version, "epoch": self.epoch, "steps": self.pipeline.steps,
-                "keyframes": self.pipeline.n_keyframes, "seen": len(self.seen) + len(self._seen_ids),
-                "pending": len(self.pending), **self.counts,
-                "stats": self.pipeline.stats()}
+    def info(self, req: dict | None = None) -> dict:
+        """Counters; with ``{"keys": true}`` also the (sensor, frame_id) of every keyframe in the map."""
+        out = {"v": protocol.VERSION, "version": self.version, "epoch": self.epoch, "steps": self.pipeline.steps,
+               "keyframes": self.pipeline.n_keyframes, "seen": len(self.seen) + len(self._seen_ids),
+               "pending": len(self.pending), **self.counts,
+               "stats": self.pipeline.stats(), **({"cluster": self.shard.info()} if self.shard else {})}
+        if isinstance(req, dict) and req.get("keys") is True:
+            with self.lock:
+                out["keys"] = sorted([s, int(i)] for s, i in self.seen)
+        return out
 
     def _latest_of(self, name: str):
         def on_query(q):
@@ -386,12 +433,17 @@ class MapperNode:
             s.declare_queryable(keys.key(self.ns, keys.MAP_SURFELS), self._latest_of(keys.MAP_SURFELS)),
             s.declare_queryable(keys.key(self.ns, keys.MAP_INDEX), self._latest_of(keys.MAP_INDEX)),
             s.declare_queryable(keys.key(self.ns, keys.MAP_SUBMAPS) + "/**", self._on_submaps_query),
-            transport.serve(s, keys.key(self.ns, INFO_KEY), lambda _req: self.info(), allow_empty=True),
+            transport.serve(s, keys.key(self.ns, INFO_KEY), self.info, allow_empty=True),
             transport.serve(s, keys.key(self.ns, mapfiles.SAVE_KEY), self.on_save, allow_empty=True),
             transport.serve(s, keys.key(self.ns, mapfiles.LOAD_KEY), self.on_load),
             transport.serve(s, keys.key(self.ns, keys.CONTROL_POSES), self.on_poses),
-            s.liveliness().declare_token(keys.status_key(self.ns, "mapper", uuid.uuid4().hex[:8])),
         ]
+        if self.shard is not None:  # members, the map's frame, keyframes for the others; then the token
+            self._decls += self.shard.start(s)
+        self._decls.append(s.liveliness().declare_token(
+            keys.status_key(self.ns, "mapper", self.shard.id if self.shard else uuid.uuid4().hex[:8])))
+        if self.shard is not None:
+            self.shard.apply()  # a resumed map: only the regions this mapper ranks first for
         if self.pipeline.n_keyframes:
             self._publish()  # a resumed map is served at once
         self._thread.start()
@@ -454,10 +506,14 @@ def cli(argv: list[str] | None = None) -> None:
     p.add_argument("--checkpoint-dir", help="checkpoint the map here and resume from it")
     p.add_argument("--mapper", choices=["submaps", "single"],
                    help="submaps: one network per submap (protocol 1.3; the default); single: one network (map/weights)")
+    p.add_argument("--cluster", action="store_true", help="share the map with the namespace's other mappers that "
+                   "have it (protocol 1.14, cluster.enabled)")
+    p.add_argument("--mapper-id", help="this mapper's stable id in the cluster (cluster.mapper_id)")
     args = p.parse_args(argv)
     cfg = config_from_args(MapperConfig, args, {"preset": args.preset, "checkpoint_dir": args.checkpoint_dir,
                                                 "atlanta": False if args.no_atlanta else None,
-                                                "mapper": args.mapper})
+                                                "mapper": args.mapper, "cluster.enabled": True if args.cluster else None,
+                                                "cluster.mapper_id": args.mapper_id})
     stop = service_setup(cfg, "mapper")
     main(cfg, stop)
 

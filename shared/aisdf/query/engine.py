@@ -166,15 +166,29 @@ class QueryEngine:
     # ------------------------------------------------------------------ submaps (protocol 1.3)
 
     @staticmethod
-    def _submap_newer(cur: MapState | None, epoch: int, version: int, cell) -> bool:
+    def _merges(cur: MapState | None, epoch: int, term: int, grid: SubmapGrid | None) -> bool:
+        """Does a submap snapshot join the current set (else it starts a new one)? The same
+        mapper incarnation, or (1.14) a shard's snapshot on the grid of a set of shards:
+        shards share one grid and may publish under different epochs (the set takes the newest)."""
+        if cur is None or cur.submaps is None:
+            return False
+        if cur.epoch == epoch:
+            return True
+        return bool(term) and grid is not None and cur.submaps.sharded and cur.submaps.grid.same_as(grid)
+
+    @classmethod
+    def _submap_newer(cls, cur: MapState | None, epoch: int, version: int, cell, term: int = 0,
+                      grid: SubmapGrid | None = None) -> bool:
+        """A submap's snapshots order by (term, version) (term 0 with one mapper) within a set;
+        sets by epoch."""
         if cur is None:
             return True
         if cur.submaps is None:  # a single network: the newer map wins, as between weights
             return (epoch, version) > cur.order
-        if epoch != cur.epoch:
+        if not cls._merges(cur, epoch, term, grid):
             return epoch > cur.epoch
         held = cur.submaps.submaps.get(cell)
-        return held is None or version > held.version
+        return held is None or (term, version) > held.order
 
     def set_submap(self, snap: protocol.WeightSnapshot) -> bool:
         """Take one submap's snapshot (``map/submaps/<id>``) if it is newer than the one held
@@ -188,25 +202,31 @@ class QueryEngine:
             grid = SubmapGrid.from_msg(snap.submap["grid"])
         except (KeyError, TypeError) as e:
             raise ValueError(f"bad submap header: {e}") from None
-        if not self._submap_newer(self._state, snap.epoch, snap.version, cell):
+        term, mapper = snap.submap.get("term", 0), snap.submap.get("mapper")
+        if not isinstance(term, int) or isinstance(term, bool) or term < 0:
+            raise ValueError(f"submap {sid}: 'term' must be a non-negative integer")
+        mapper = mapper if isinstance(mapper, str) else None
+        if not self._submap_newer(self._state, snap.epoch, snap.version, cell, term, grid):
             return False
         net, bounds, observed = self._load(snap)
         with self._lock:
             cur = self._state
-            if not self._submap_newer(cur, snap.epoch, snap.version, cell):
+            if not self._submap_newer(cur, snap.epoch, snap.version, cell, term, grid):
                 return False
-            if cur is not None and cur.submaps is not None and cur.epoch == snap.epoch:
+            epoch = snap.epoch
+            if self._merges(cur, snap.epoch, term, grid):
                 if not cur.submaps.grid.same_as(grid):
                     raise ValueError(f"submap {sid}: its grid differs from the grid of this mapper's other submaps")
                 grid, subs, version = cur.submaps.grid, dict(cur.submaps.submaps), cur.version
+                epoch = max(cur.epoch, snap.epoch)  # 1.14: shards' epochs; a served map never goes back
             else:  # the first submap, or a new mapper incarnation: a new set
                 subs, version = {}, snap.version
             measured = snap.measured["points"] if snap.measured is not None and self.use_measured else None
-            subs[cell] = SubmapSnapshot(cell, snap.version, snap.step, net, observed, bounds, measured)
+            subs[cell] = SubmapSnapshot(cell, snap.version, snap.step, net, observed, bounds, measured, term, mapper)
             idx = self._index
             if idx is not None and idx.epoch == snap.epoch and self._complete(subs, idx):
                 version = max(version, idx.version)
-            self._state = self._submap_state(SubmapSet(grid, subs), max(version, snap.version), snap.epoch, cur)
+            self._state = self._submap_state(SubmapSet(grid, subs), max(version, snap.version), epoch, cur)
             self.baker.map_arrived(self._state)
         return True
 
@@ -235,15 +255,20 @@ class QueryEngine:
             if old is None or (idx.epoch, idx.version) >= (old.epoch, old.version):
                 self._index = idx
             cur = self._state
-            if cur is None or idx.epoch > cur.epoch or (cur.submaps is None and (idx.epoch, idx.version) > cur.order):
+            # 1.14: the index of one of the shards of the current set (their epochs may differ)
+            shard = (cur is not None and cur.submaps is not None and cur.submaps.sharded
+                     and cur.submaps.grid.same_as(SubmapGrid.from_msg(idx.grid)))
+            if not shard and (cur is None or idx.epoch > cur.epoch
+                              or (cur.submaps is None and (idx.epoch, idx.version) > cur.order)):
                 return None
-            if cur.submaps is None or idx.epoch < cur.epoch:
+            if cur.submaps is None or (idx.epoch < cur.epoch and not shard):
                 return []
             subs = cur.submaps.submaps
             # 1.11: a submap the mapper removed (left without keyframes by a pose correction) is
-            # not in an index at least as new as its snapshot: it goes
+            # not in an index at least as new as its snapshot: it goes (not a shard's: each
+            # shard's index lists only the submaps it owns)
             listed = {parse_cell_id(sid) for sid in idx.submaps}
-            gone = [c for c, h in subs.items() if c not in listed and h.version <= idx.version]
+            gone = [c for c, h in subs.items() if c not in listed and h.version <= idx.version and not h.term]
             if gone and idx.epoch == cur.epoch:
                 subs = {c: h for c, h in subs.items() if c not in gone}
                 self._state = cur = self._submap_state(SubmapSet(cur.submaps.grid, subs), cur.version, cur.epoch,

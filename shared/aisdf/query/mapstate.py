@@ -27,14 +27,27 @@ class SubmapSnapshot:
     observed: ObservedGrid | None  # observed space of its extended box
     bounds: np.ndarray | None
     measured: np.ndarray | None = None  # protocol 1.4: (M, 3) measured points in its extended box
+    term: int = 0  # protocol 1.14: the ownership term of the mapper shard that published it (0: one mapper)
+    mapper: str | None = None  # protocol 1.14: that mapper's id
+
+    @property
+    def order(self) -> tuple[int, int]:
+        """Snapshots of one cell order by (term, version)."""
+        return (self.term, self.version)
 
 
 @dataclass(frozen=True)
 class SubmapSet:
-    """The submaps of one mapper incarnation (replaced whole, never changed in place)."""
+    """The submaps of one mapper incarnation, or of the mapper shards sharing one grid
+    (protocol 1.14), replaced whole, never changed in place."""
 
     grid: SubmapGrid
     submaps: dict  # cell -> SubmapSnapshot
+
+    @property
+    def sharded(self) -> bool:
+        """Published by mapper shards (protocol 1.14): its snapshots carry terms."""
+        return any(s.term for s in self.submaps.values())
 
     def changed_since(self, other: "SubmapSet") -> list[tuple[int, int, int]]:
         """Cells whose submap differs (added, replaced or gone) between ``other`` and this set."""

@@ -16,9 +16,10 @@ mapper interface as the one network (:class:`aisdf.mapper.Mapper`): ``add_keyfra
 ``sdf``, ``map_messages`` (only the submaps that changed, ``map/index`` and the surfel map;
 ``publish.py``), ``memory``, ``checkpoint``/``restore`` (``persist.py``).
 
-Ownership: a submap is a unit of work keyed by its id. Several mapper processes could each
-own a share of the ids (a hash of the id, or a list) and subscribe to the same keyframes;
-each would publish only its own ``map/submaps/<id>``. One process owns all of them here.
+Ownership (protocol 1.14, mapper shards): ``owns`` (a cell -> bool, None = every cell)
+restricts the submaps this process creates and trains to the cells it owns; keyframes
+touching only other cells are still stored (a replica's) and given to those cells' submaps
+when ownership changes (``shards.reassign``); ``shards.adopt_grid`` takes a shared grid.
 """
 
 from __future__ import annotations
@@ -78,6 +79,8 @@ class SubmapPipeline:
         self._since_keyframe = 0
         self.publisher = SubmapPublisher(self)
         self.retraining: dict[Cell, int] = {}  # pose corrections: submaps owed steps, trained first (mapper/repose.py)
+        self.owns = None  # protocol 1.14: cell -> bool, the cells this process trains (None: all; shards.py)
+        self.cluster_header = None  # protocol 1.14: cell -> extra submap header keys (term, mapper)
 
     @classmethod
     def from_settings(cls, preset: str = "auto", training: dict[str, Any] | None = None, atlanta: bool = True,
@@ -195,8 +198,8 @@ class SubmapPipeline:
         pts_C = dirs[:, None, :] * (D[:, None] * fr)[..., None]
         return geometry.transform(T, pts_C.reshape(-1, 3)), T[:3, 3]
 
-    def _assign(self, kf: StoredFrame) -> None:
-        """Give the keyframe to every submap it observes enough of (creating them)."""
+    def _cells_of(self, kf: StoredFrame) -> dict[Cell, int]:
+        """{cell: ray points} of the submaps the keyframe observes enough of."""
         s = self.sub_cfg
         pts, _ = self._ray_points(kf)
         counts = self.grid.cells_touching(pts)
@@ -205,11 +208,23 @@ class SubmapPipeline:
         if not seen and counts:  # a keyframe always lands somewhere: its best cell
             c = max(counts, key=counts.get)
             seen = {c: counts[c]}
+        return seen
+
+    def _give(self, kf: StoredFrame, c: Cell) -> None:
+        sm = self.submaps.get(c) or self._new_submap(c)
+        sm.trainer.store.add_prepared(kf.view(self._pixel_mask(kf, c), self._region(c)))
+        sm.seen_by.append(kf.frame.key)
+
+    def _assign(self, kf: StoredFrame) -> None:
+        """Give the keyframe to every submap it observes enough of (creating them); with
+        ``owns``, only to the cells this process owns."""
+        seen = self._cells_of(kf)
+        if self.owns is not None:
+            seen = {c: n for c, n in seen.items() if self.owns(c)}
         for c in seen:
-            sm = self.submaps.get(c) or self._new_submap(c)
-            sm.trainer.store.add_prepared(kf.view(self._pixel_mask(kf, c), self._region(c)))
-            sm.seen_by.append(kf.frame.key)
-        self._recent = ([seen] + self._recent)[: s.active_keyframes]
+            self._give(kf, c)
+        if seen or self.owns is None:
+            self._recent = ([seen] + self._recent)[: self.sub_cfg.active_keyframes]
 
     def _new_submap(self, c: Cell) -> Submap:
         """A new submap. With ``warm_start`` and a trained neighbour (one of the 26 cells

@@ -61,9 +61,11 @@ class SubmapPublisher:
         c = sm.cell
         model["bounds"] = [self.pipe.grid.corners_W(c, self.pipe.grid.overlap_m).min(0).tolist(),
                            self.pipe.grid.corners_W(c, self.pipe.grid.overlap_m).max(0).tolist()]
+        header = {"id": sm.id, "grid": self.pipe.grid.to_msg()}
+        if self.pipe.cluster_header is not None:  # protocol 1.14: term and mapper of a shard's submap
+            header.update(self.pipe.cluster_header(c))
         return protocol.WeightSnapshot(version, sm.trainer.steps, time.time(), model, sm.trainer.state_numpy(),
-                                       epoch, self.observed_msg(sm), {"id": sm.id, "grid": self.pipe.grid.to_msg()},
-                                       self.measured_msg(sm))
+                                       epoch, self.observed_msg(sm), header, self.measured_msg(sm))
 
     def index(self, version: int, epoch: int = 0) -> protocol.SubmapIndex:
         return protocol.SubmapIndex(version, time.time(), self.pipe.grid.to_msg(),
