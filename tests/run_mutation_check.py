@@ -121,6 +121,15 @@ BREAKAGES = [
     Breakage("cleared-not-republished", "a submap whose measured points were cleared waits for training",
              "shared/aisdf/submaps/publish.py", "if changed_only and not sm.measured_changed and (",
              "if changed_only and (", ("tests/mapper/test_clearing.py",)),
+    Breakage("layout-in-observed", "the layout prior predicts surfaces in observed space too",
+             "shared/aisdf/structure/layout.py", "    return q[(joined & ~seen).ravel()]", "    return q[joined.ravel()]",
+             ("tests/structure/test_layout.py",)),
+    Breakage("layout-runs-past-edges", "a plane runs on past where another surface meets it",
+             "shared/aisdf/structure/layout.py", "        met = ndimage.binary_dilation(met)\n",
+             "        met[:] = False\n", ("tests/structure/test_layout.py",)),
+    Breakage("layout-not-baked", "the bake leaves the layout cap out (exact answers keep it)",
+             "shared/aisdf/query/baker.py", "self.fuse_radius, layout=lay)", "self.fuse_radius, layout=None)",
+             ("tests/query/test_layout_answer.py",)),
 ]
 
 
