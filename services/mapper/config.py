@@ -25,6 +25,9 @@ class ClusterConfig(Model):
     region_cells: int = Field(2, ge=1, description="a region is this many x this many submap cells (one layer)")
     replicas: int = Field(2, ge=1, le=3, description="owners per region: rank 1 trains, ranks 2.. keep the keyframes")
     start_wait_s: float = Field(1.5, gt=0, description="at start, how long to wait for the members and the map's frame")
+    slots: bool = Field(False, description="with a checkpoint directory several mappers share (docker compose --scale "
+                        "mapper=N): claim its first free slot-<n> subdirectory (locked while this mapper runs) for "
+                        "this mapper's state, and the id mapper-<n> unless mapper_id is set")
 
     @field_validator("mapper_id")
     @classmethod

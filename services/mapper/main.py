@@ -63,6 +63,14 @@ INCARNATION_NAME = "mapper-incarnation.json"
 
 class MapperNode:
     def __init__(self, cfg: MapperConfig, session, pipeline: Mapper | None = None):
+        self.slot = None  # 1.14: this mapper's slot of a shared checkpoint volume (slots.py)
+        if cfg.cluster.enabled and cfg.cluster.slots and cfg.checkpoint_dir:
+            from .slots import claim
+
+            self.slot = claim(cfg.checkpoint_dir)
+            cfg = cfg.model_copy(update={"checkpoint_dir": self.slot.dir, "cluster": cfg.cluster.model_copy(
+                update={"mapper_id": cfg.cluster.mapper_id or self.slot.mapper_id})})
+            log.info("state in %s (slot %d)", self.slot.dir, self.slot.n)
         self.cfg = cfg
         self.session = session
         self.ns = cfg.namespace
@@ -396,6 +404,8 @@ class MapperNode:
         if isinstance(req, dict) and req.get("keys") is True:
             with self.lock:
                 out["keys"] = sorted([s, int(i)] for s, i in self.seen)
+            if self.shard is not None:  # the regions each kept keyframe touches (nil: before the grid)
+                out["touched"] = [self.shard.touched.get((s, i)) for s, i in out["keys"]]
         return out
 
     def _latest_of(self, name: str):
@@ -460,6 +470,8 @@ class MapperNode:
         self.save_checkpoint()
         if self.journal is not None:
             self.journal.close()
+        if self.slot is not None:
+            self.slot.release()
 
 
 def _identity(msg) -> tuple[str, int] | None:

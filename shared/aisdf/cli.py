@@ -61,6 +61,8 @@ TOOLS = [
      "without the layout prior against 2 and 5 cm voxel maps"),
     ("replicas", "aisdf.bench.replicas", "8 planners x 10,000 points against 1 and 2 query replicas, and one killed "
      "(protocol 1.12), real processes"),
+    ("cluster", "aisdf.bench.cluster", "the floor walked by two robots into 1, 2 and 3 mapper shards, one killed, a "
+     "fourth joining (protocol 1.14), real processes"),
 ]
 
 
