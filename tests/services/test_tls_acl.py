@@ -5,7 +5,8 @@ and deploy/tls/<service>.json5, certificates made by deploy/tls/make-certs.sh. O
 certificate paths and the port are changed from the shipped files.
 
 Without a certificate (or with one from another CA, or over plain TCP) nothing connects; a
-planner that publishes keyframes or maps changes nothing; a planner gets answers."""
+planner that publishes keyframes or maps changes nothing; a planner gets answers, and follows
+the query replicas (protocol 1.12), which only the query identity can announce."""
 
 from __future__ import annotations
 
@@ -21,7 +22,9 @@ import numpy as np
 import pytest
 
 from aisdf import keys, protocol, query_messages, transport
+from aisdf.client import SdfClient
 from aisdf.config import ZenohOptions
+from aisdf.replicas import Replicas
 from aisdf.stack import free_port, wait_for
 from aisdf.synthetic import SyntheticSequence
 
@@ -155,9 +158,10 @@ def test_planner_gets_answers_and_reads_maps(deployment):
     assert fi["keyframes"] > 0 and fi["acked"] == fi["keyframes"]
 
 
-def health(conf: Path, service: str) -> int:
+def health(conf: Path, service: str, *extra: str) -> int:
     return subprocess.run([sys.executable, "-c", "from aisdf.ops import health_cli; health_cli()", service,
-                           "--zenoh-config", str(conf), "--timeout", "2"], capture_output=True, timeout=60).returncode
+                           "--zenoh-config", str(conf), "--timeout", "2", *extra], capture_output=True,
+                          timeout=60).returncode
 
 
 def test_health_checks_with_each_service_identity(deployment):
@@ -165,8 +169,46 @@ def test_health_checks_with_each_service_identity(deployment):
     codes = {name: health(conf[name], name) for name in ("mapper", "query", "frontend")}
     codes["router"] = health(conf["mapper"], "router")
     codes["planner sees mapper"] = health(conf["planner"], "mapper")  # status/** is not a planner's
-    print("aisdf-health exit codes:", codes)
-    assert codes == {"mapper": 0, "query": 0, "frontend": 0, "router": 0, "planner sees mapper": 1}
+    # a query replica checks its own token: the service here has the default id <this host>-<hex>
+    rid = info(deployment, "query")["replica"]
+    assert rid.startswith(keys.host_chunk() + "-")
+    codes["query --own-host"] = health(conf["query"], "query", "--own-host")
+    codes["query --id-prefix <its id>"] = health(conf["query"], "query", "--id-prefix", rid)
+    codes["query --id-prefix elsewhere-"] = health(conf["query"], "query", "--id-prefix", "elsewhere-")
+    codes["query --id-prefix a/*"] = health(conf["query"], "query", "--id-prefix", "a/*")  # usage error
+    print(f"aisdf-health exit codes (query replica {rid}):", codes)
+    assert codes == {"mapper": 0, "query": 0, "frontend": 0, "router": 0, "planner sees mapper": 1,
+                     "query --own-host": 0, "query --id-prefix <its id>": 0, "query --id-prefix elsewhere-": 1,
+                     "query --id-prefix a/*": 2}
+
+
+def test_planner_follows_the_query_replica(deployment):
+    """Protocol 1.12 under the access control: a planner's (and a monitor's) SdfClient sees the
+    query service's replica token and its requests are answered on the replica's own key."""
+    d = deployment
+    rid = info(d, "query")["replica"]
+    sdf_key = keys.replica_key(NS, rid, "sdf")
+    req = query_messages.SdfRequest(np.zeros((8, 3))).to_msg()
+    with SdfClient(namespace=NS, zenoh=opts(d["conf"]["planner"]), timeout=10.0) as c:
+        # (SdfClient's first liveliness get can end before its subscriber's history arrives: wait)
+        seen = wait_for(lambda: c.replica_ids(), 10, period=0.1, what="the replica at the planner")
+        wait_for(lambda: sdf_answer(c._session), 120, period=1.0, what="a planner's query/sdf answer")
+        e0 = info(d, "query")["evaluated"]
+        r = c.query(np.zeros((8, 3)))
+        direct = transport.query(c._session, sdf_key, req, 5.0)  # the replica's key itself answers a planner
+        e1 = info(d, "query")["evaluated"]
+        print(f"planner: replicas seen {seen}; answered by map version {r.map_version}; on {sdf_key}: "
+              f"map version {direct['map_version']}; evaluated {e0} -> {e1}")
+        assert seen == [rid] and c.replica_ids() == [rid]
+        assert r.sdf.shape == (8,) and direct["sdf"]["shape"] == [8] and e1 == e0 + 2
+    with transport.open_session(opts(d["conf"]["monitor"])) as mon:
+        reps = Replicas(mon, NS)
+        try:
+            seen = wait_for(lambda: reps.ids(), 10, period=0.1, what="the replica at the monitor")
+            print(f"monitor: replicas seen {seen}")
+            assert seen == [rid]
+        finally:
+            reps.close()
 
 
 def keyframe_msg(frame_id: int, sensor: str) -> dict:
@@ -238,7 +280,8 @@ FORGED_M = 42.0
 # An impostor: another process (as on another machine) with an identity's Zenoh settings, that
 # declares query/sdf and answers every request with a forged reply (every distance 42 m: all
 # clear) a planner would steer by, until it is terminated. (Told apart by its distances, not its
-# map version: the test above leaves the real service with a forged map of version 10**9.)
+# map version: the test above leaves the real service with a forged map of version 10**9.) With a
+# replica id, it declares that replica's sdf key (complete) and then its token, as a 1.12 replica.
 IMPOSTOR = """
 import sys, time
 from pathlib import Path
@@ -251,14 +294,18 @@ def on_query(q):
     q.reply(q.key_expr, protocol.pack(rep.to_msg()), encoding=transport.ENCODING)
 
 with transport.open_session(ZenohOptions(config_file=Path(sys.argv[1]))) as s:
-    decl = s.declare_queryable(keys.key(sys.argv[2], keys.QUERY_SDF), on_query)
+    rid = sys.argv[3] if len(sys.argv) > 3 else None
+    key = keys.replica_key(sys.argv[2], rid, "sdf") if rid else keys.key(sys.argv[2], keys.QUERY_SDF)
+    decl = s.declare_queryable(key, on_query, complete=rid is not None)
+    token = s.liveliness().declare_token(keys.replica_key(sys.argv[2], rid)) if rid else None
     print("declared", flush=True)
     time.sleep(600)
 """.replace("FORGED", repr(FORGED_M))
 
 
-def impostor(conf: Path) -> subprocess.Popen:
-    p = subprocess.Popen([sys.executable, "-c", IMPOSTOR, str(conf), NS], stdout=subprocess.PIPE, text=True)
+def impostor(conf: Path, rid: str | None = None) -> subprocess.Popen:
+    p = subprocess.Popen([sys.executable, "-c", IMPOSTOR, str(conf), NS, *([rid] if rid else [])],
+                         stdout=subprocess.PIPE, text=True)
     assert p.stdout.readline().strip() == "declared"
     return p
 
@@ -301,3 +348,50 @@ def test_only_the_query_identity_can_answer_planners(deployment):
         finally:
             p.kill()
             p.wait()
+
+
+def forged_on(session, rid: str) -> bool | None:
+    """What ``rid``'s replica key answers a planner: True forged, False real, None nothing."""
+    try:
+        r = transport.query(session, keys.replica_key(NS, rid, "sdf"),
+                            query_messages.SdfRequest(np.zeros((8, 3))).to_msg(), 2.0)
+    except (protocol.ProtocolError, TimeoutError):
+        return None
+    return bool(np.all(query_messages.SdfReply.from_msg(r).sdf == FORGED_M))
+
+
+def test_only_the_query_identity_can_announce_a_replica(deployment):
+    """A frontend (a robot's) or a planner that declares a replica token and its queryables
+    reaches nobody: a planner's SdfClient sees only the real replica, and the impostor's replica
+    key answers nothing. The same impostor with the query identity is seen and answers (so the
+    check can fail)."""
+    d = deployment
+    rid = info(d, "query")["replica"]
+    with transport.open_session(opts(d["conf"]["planner"])) as planner:
+        reps = Replicas(planner, NS)
+        try:
+            for identity in ("frontend", "planner"):
+                fake = f"impostor-{identity}"
+                p = impostor(d["conf"][identity], fake)
+                try:
+                    time.sleep(1.0)  # its declarations would have reached the router and the planner
+                    with SdfClient(namespace=NS, zenoh=opts(d["conf"]["planner"])) as fresh:
+                        wait_for(lambda: rid in fresh.replica_ids(), 10, period=0.1, what="the real replica")
+                        seen = (reps.ids(), fresh.replica_ids(), forged_on(planner, fake))
+                finally:
+                    p.kill()
+                    p.wait()
+                print(f"a {identity} announcing replica {fake}: the planner saw {seen[0]} (a new client: {seen[1]}); "
+                      f"its replica key answered {seen[2]}")
+                assert seen == ([rid], [rid], None), (identity, seen)
+            p = impostor(d["conf"]["query"], "impostor-query")
+            try:
+                wait_for(lambda: "impostor-query" in reps.ids(), 15, period=0.2,
+                         what="the query identity's replica token at the planner")
+                assert forged_on(planner, "impostor-query") is True
+            finally:
+                p.kill()
+                p.wait()
+            wait_for(lambda: reps.ids() == [rid], 15, period=0.2, what="the impostor's token gone")
+        finally:
+            reps.close()
