@@ -79,6 +79,8 @@ def test_compose_health_checks_and_start_order():
         assert services[name]["healthcheck"]["test"][:3] == ["CMD", "aisdf-health", name]
         assert services[name]["depends_on"]["zenoh"] == {"condition": "service_healthy"}
     assert services["frontend"]["depends_on"]["mapper"] == {"condition": "service_healthy"}
+    # query replicas (docker compose up --scale query=2): each checks its own token, not any replica's
+    assert "--own-host" in services["query"]["healthcheck"]["test"]
 
 
 def test_overrides_keep_traffic_on_the_host_network():

@@ -2,9 +2,7 @@
 
 from __future__ import annotations
 
-import re
 import secrets
-import socket
 from typing import Literal
 
 from pydantic import Field, field_validator
@@ -17,8 +15,7 @@ from aisdf.structure.fusion import DEFAULT_FUSE_RADIUS
 def default_replica_id() -> str:
     """``<hostname>-<6 random hex digits>``, new at every start and kept nowhere: replicas on one
     host (or in containers sharing the host's name) never collide, and an operator sees the host."""
-    host = re.sub(r"[^A-Za-z0-9_.-]", "-", socket.gethostname().split(".")[0])[:48] or "query"
-    return f"{host}-{secrets.token_hex(3)}"
+    return f"{keys.host_chunk()}-{secrets.token_hex(3)}"
 
 
 class QueryConfig(ServiceConfig):

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import re
+import socket
 
 DEFAULT_NAMESPACE = "aisdf"
 
@@ -38,6 +39,13 @@ def validate_replica_id(replica_id: str) -> str:
     if not isinstance(replica_id, str) or not _REPLICA_ID.fullmatch(replica_id):
         raise ValueError(f"invalid replica id {replica_id!r}: 1-64 letters, digits, '-', '_' or '.'")
     return replica_id
+
+
+def host_chunk() -> str:
+    """This host's name as one key chunk (its first label, other characters than letters, digits,
+    ``_``, ``.``, ``-`` as ``-``, at most 48): the start of a query replica's default id
+    ``<host_chunk()>-<6 hex digits>``; in a container, the container's hostname."""
+    return re.sub(r"[^A-Za-z0-9_.-]", "-", socket.gethostname().split(".")[0])[:48] or "query"
 
 
 def replica_key(namespace: str, replica_id: str, name: str | None = None) -> str:
