@@ -140,6 +140,7 @@ class SdfClient:
         exact: bool = False,
         unknown: bool = False,
         fresh: bool = True,
+        predicted: bool = False,
     ) -> query_messages.SdfReply:
         """Signed distances (and optionally gradients and CHOMP costs) of (N, 3) points.
 
@@ -151,7 +152,9 @@ class SdfClient:
         with ``radii``, that of the sphere's surface): ``min(sdf, unknown)`` is the distance
         of a planner that treats unknown space as occupied. ``fresh=False`` (protocol 1.10):
         the baked field answers even when it trails the newest map (cheaper for the service;
-        ``map_version`` and ``map_age_s`` say which map).
+        ``map_version`` and ``map_age_s`` say which map). ``predicted`` (protocol 1.13): also
+        return per point whether the distance is to a surface the map predicts (the floor,
+        ceiling or a wall carried on where no keyframe looked: ``reply.predicted``).
 
         With ``max_batch`` set, larger inputs are split into several requests and the
         replies concatenated (map_version is the smallest one seen)."""
@@ -169,25 +172,28 @@ class SdfClient:
         for i in range(0, max(len(pts), 1), step):
             req = query_messages.SdfRequest(pts[i:i + step], gradient, collision_epsilon, source,
                                             None if radii is None else radii[i:i + step], observed, exact, unknown,
-                                            fresh=fresh)
+                                            fresh=fresh, predicted=predicted)
             parts.append(query_messages.SdfReply.from_msg(self._request("sdf", req.to_msg(), self.timeout)))
         if len(parts) == 1:
             return parts[0]
         cat = lambda name: None if getattr(parts[0], name) is None else np.concatenate([getattr(p, name) for p in parts])  # noqa: E731
         first = min(parts, key=lambda p: (p.map_epoch, p.map_version))
         return query_messages.SdfReply(first.map_version, cat("sdf"), cat("gradient"), cat("collision"), cat("observed"),
-                                 all(p.baked for p in parts), first.map_epoch, cat("unknown"))
+                                 all(p.baked for p in parts), first.map_epoch, cat("unknown"),
+                                 max(p.map_age_s or 0.0 for p in parts) if first.map_age_s is not None else None,
+                                 None, cat("predicted"))
 
     def box(self, min_corner, size, resolution: float, gradient: bool = False, observed: bool = False,
             unknown: bool = False, exact: bool = False, source: str = "fused",
-            collision_epsilon: float | None = None, fresh: bool = True) -> query_messages.SdfReply:
+            collision_epsilon: float | None = None, fresh: bool = True,
+            predicted: bool = False) -> query_messages.SdfReply:
         """A local distance window (protocol 1.9): the dense grid of samples ``resolution``
         apart over the world-axis-aligned box ``[min_corner, min_corner + size]``, in one
         request of a few bytes. ``reply.box`` gives the lattice (origin, resolution, shape);
         ``reply.grid("sdf")`` is (nx, ny, nz), ``reply.grid("gradient")`` (nx, ny, nz, 3)."""
         b = query_messages.Box.around(min_corner, size, resolution)
         req = query_messages.SdfRequest(np.zeros((0, 3), np.float32), gradient, collision_epsilon, source, None,
-                                        observed, exact, unknown, b, fresh)
+                                        observed, exact, unknown, b, fresh, predicted)
         return query_messages.SdfReply.from_msg(self._request("sdf", req.to_msg(), self.timeout))
 
     def sdf(self, points_W: np.ndarray, source: str = "fused") -> np.ndarray:

@@ -104,13 +104,20 @@ def test_query_service_bakes_the_map_and_answers_planner_fields(small_map):
             # Measured (pytest -s tests/e2e/test_e2e_query.py -k planner_fields, 34be166, 2026-12-05):
             # 4.17 % too high, 1.70 % with unknown space as occupied; bounds about 2x off.
             assert high_safe < 0.04 and high_safe < 0.7 * high, (high, high_safe)
+            # 1.13: which answers rest on the predicted layout, as the same map in-process says.
+            status, m13 = sc.request(s, f"{NS}/query/sdf", {"v": 1, "points": sc.arr(pts, "<f8"), "predicted": True},
+                                     30.0)
+            assert status == "ok", m13
+            flag = sc.unarr(m13["predicted"]).astype(bool)
+            np.testing.assert_array_equal(flag, e.answer_sdf(query_messages.SdfRequest(pts, predicted=True)).predicted)
+            np.testing.assert_allclose(sc.unarr(m13["sdf"]), sc.unarr(m16["sdf"]), atol=1e-6)
             # Far from anything seen: not observed; an old (1.0) request still gets a 1.0 reply.
             status, msg = sc.request(s, f"{NS}/query/sdf", {"v": 1, "points": sc.arr([[50.0, 50, 50]], "<f4"),
                                                            "observed": True})
             assert status == "ok" and not sc.unarr(msg["observed"]).any()
             status, msg = sc.request(s, f"{NS}/query/sdf", {"v": 1, "points": sc.arr(pts[:5], "<f4")})
             assert status == "ok" and sc.unarr(msg["sdf"]).shape == (5,) and "observed" not in msg
-            assert "unknown" not in msg
+            assert "unknown" not in msg and "predicted" not in msg
             assert st.alive("query")
         finally:
             s.close()
