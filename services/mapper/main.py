@@ -261,7 +261,10 @@ class MapperNode:
             ok.append(kf.frame_id)
             regs.append(self.shard.ack_info((kf.sensor, kf.frame_id)) if self.shard else None)
         for sensor, (ok, bad, regs) in acks.items():
-            self._ack(sensor, ok, bad, regs if self.shard else None)
+            if self.shard is not None:
+                self._ack(sensor, ok, bad, regions=regs)
+            else:
+                self._ack(sensor, ok, bad)
 
     def switch_epoch(self, epoch: int) -> None:
         """A shard adopting the map's epoch (1.14): everything is published again under it."""

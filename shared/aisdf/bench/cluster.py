@@ -12,8 +12,8 @@ fused) against the exact SDF at points sampled along the walk's rays (``eval_poi
 Prints, and writes to ``cluster.json`` in ``--out``: per run, per mapper its training steps
 and the submaps it owns (trains); keyframes the front ends had acknowledged against those in
 the map (the union of the mappers' keyframes; acknowledged but absent = lost); the error at
-the walk's end and at +``--settle`` s. The kill run (3 mappers, ``c2`` killed once it has
-published ``--kill-after`` submaps): seconds until every submap it had published is published
+the walk's end and at +``--settle`` s. The kill run (3 mappers; half-way through the walk the
+one that has published the most submaps, at least ``--kill-after``, killed): seconds until every submap it had published is published
 by a survivor, acknowledged keyframes lost, the error at +``--settle`` s; then ``c4`` starts and
 the seconds until it publishes a submap of its own. On a 2-core machine 3 mappers share the
 cores with the query service and the front ends: each trains fewer steps than one alone.
@@ -96,18 +96,28 @@ def run_one(n: int, args, pts, gt, kill: bool = False, join: bool = False, log_d
                 mapper_infos(s, ns)), 120, what="every member")
             t0 = time.monotonic()
             st.start(only=["frontend", "frontend2"])
-            if kill:
-                wait_for(lambda: len({p[1] for p in pubs if p[2] == "c2"}) >= args.kill_after, 900, what="c2 publishing")
+            if kill:  # half-way through the walk: the mapper that has published the most submaps
+                wait_for(lambda: (lambda f: len(f) == 2 and sum(x["frames"] for x in f) >= args.frames // 2)(
+                    front_infos(s, ns)), 900, 1.0, what="half the walk")
+
+                def victim():
+                    with lock:
+                        counts = {}
+                        for _, sid, m in pubs:
+                            counts.setdefault(m, set()).add(sid)
+                    best = max(counts, key=lambda m: (len(counts[m]), m), default=None)
+                    return best if best and len(counts[best]) >= args.kill_after else None
+
+                dead = wait_for(victim, 300, what="a mapper with submaps to kill")
                 t_kill = time.monotonic()
-                st.procs["mapper2"].kill()
+                st.procs[next(k for k, v in ids.items() if v == dead)].kill()
                 with lock:
-                    owned = {p[1] for p in pubs if p[2] == "c2"}
-                out["killed_at_s"] = round(t_kill - t0, 1)
-                out["killed_submaps"] = len(owned)
+                    owned = {p[1] for p in pubs if p[2] == dead}
+                out.update(killed=dead, killed_at_s=round(t_kill - t0, 1), killed_submaps=len(owned))
 
                 def back():
                     with lock:
-                        later = {p[1]: p[0] for p in sorted(pubs, reverse=True) if p[0] > t_kill and p[2] != "c2"}
+                        later = {p[1]: p[0] for p in sorted(pubs, reverse=True) if p[0] > t_kill and p[2] != dead}
                     return all(c in later for c in owned) and max(later[c] for c in owned) - t_kill
 
                 try:
@@ -155,7 +165,7 @@ def main(argv: list[str] | None = None) -> dict:
     p.add_argument("--settle", type=float, default=60.0, help="seconds after the walk for the second error")
     p.add_argument("--width", type=int, default=64, help="network width (default 64)")
     p.add_argument("--region-cells", type=int, default=1, help="cells per region side (default 1)")
-    p.add_argument("--kill-after", type=int, default=2, help="the killed mapper's submaps before the kill")
+    p.add_argument("--kill-after", type=int, default=2, help="submaps the killed mapper has published at least")
     p.add_argument("--runs", default="1,2,3,kill", help="comma-separated: 1, 2, 3 mappers, kill (3 with one killed, "
                    "then a fourth joins)")
     p.add_argument("--out", default="runs/bench-cluster", help="results (cluster.json) and the services' logs")
@@ -191,7 +201,7 @@ def report(runs: list[dict]) -> str:
                      f"{r.get('acked')} / {r.get('in_map')} ({r.get('lost')}) | {per}")
     for r in runs:
         if r["kill"]:
-            lines.append(f"kill: c2 killed {r.get('killed_at_s')} s into the walk with {r.get('killed_submaps')} "
+            lines.append(f"kill: {r.get('killed')} killed {r.get('killed_at_s')} s into the walk with {r.get('killed_submaps')} "
                          f"submaps; served again after {r.get('served_again_s')} s; {r.get('lost')} acknowledged "
                          f"keyframes lost; a fourth mapper published its share after {r.get('joiner_owns_s')} s")
     return "\n".join(lines)
