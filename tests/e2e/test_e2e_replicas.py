@@ -95,6 +95,8 @@ def test_replicas_share_planners_and_fail_over():
 
         wait_for(baked, 90, period=2.0, what="both replicas to bake the map")
         clients = [SdfClient(NS, st.client_zenoh, timeout=10.0) for _ in range(PLANNERS)]
+        # the client's liveliness get at opening already knows both (its first request is spread too)
+        assert clients[0].replica_ids() == ["a", "b"], clients[0].replica_ids()
         wait_for(lambda: all(c.replica_ids() == ["a", "b"] for c in clients), 20, what="the clients to see a and b")
 
         # 1. 8 planners x 4 requests: each evaluated once, spread over both.
