@@ -316,6 +316,10 @@ class MapperNode:
                     if self.cfg.checkpoint_dir and now - last_ckpt >= self.cfg.checkpoint_period_s:
                         self.save_checkpoint()
                         last_ckpt = now
+                elif self.shard is not None and time.monotonic() - last_pub >= self.cfg.snapshot_period_s:
+                    if self.shard.surfels_due():  # the surfel map's publisher, with no submap of its own
+                        self._publish()
+                    last_pub = time.monotonic()
             if pause:
                 self._stop.wait(pause)
 

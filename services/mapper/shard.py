@@ -45,6 +45,7 @@ from aisdf.submaps.grid import SubmapGrid, parse_cell_id
 log = logging.getLogger("aisdf.mapper")
 FRAME_KEY = "cluster/frame"
 KEYFRAMES_KEY = "cluster/keyframes"
+FETCHED_PER_STEP = 4  # keyframes got from the others, added between two training steps
 
 
 def default_mapper_id(checkpoint_dir) -> str:
@@ -81,6 +82,7 @@ class Shard:
         self.counts = {"handovers": 0, "gained": 0, "lost": 0, "fetched": 0, "not_held": 0}
         self.events: list[dict] = []  # handovers, for info/mapper
         self._decls: list = []
+        self._surfels_seen = -1  # keyframes taken at this shard's last surfel-only publication
 
     # ------------------------------------------------------------------ ranks
     def region(self, cell) -> str:
@@ -95,6 +97,15 @@ class Shard:
 
     def publishes_surfels(self) -> bool:
         return own.surfel_owner(self.ranked_members) == self.id
+
+    def surfels_due(self) -> bool:
+        """Is the surfel map to be published by this shard although it trains nothing (it owns
+        no submap)? When it is the surfel map's publisher, has the grid, and took keyframes since."""
+        seen = len(self.node.seen) + self.counts["not_held"]
+        if not self.publishes_surfels() or self.node.pipeline.grid is None or seen == self._surfels_seen:
+            return False
+        self._surfels_seen = seen
+        return True
 
     def header(self, cell) -> dict:
         r = self.region(cell)
@@ -248,10 +259,15 @@ class Shard:
             self.payloads[key] = payload
             self.touched[key] = touched
 
-    def take_fetched(self) -> list[tuple[protocol.Keyframe, bytes]]:
-        """Keyframes got from the other mappers (regions this one now holds), decoded."""
+    def take_fetched(self, limit: int = FETCHED_PER_STEP) -> list[tuple[protocol.Keyframe, bytes]]:
+        """Keyframes got from the other mappers (regions this one now holds), decoded: at most
+        ``limit`` per training step, so training goes on while they are added."""
         with self.lock:
-            got, self.fetched = self.fetched, []
+            got, n = [], 0
+            while self.fetched and n < limit:
+                payload = self.fetched.pop(0)
+                got.append(payload)
+                n += 1
         out = []
         for payload in got:
             try:
@@ -365,14 +381,23 @@ class Shard:
         s = self.node.session
         if s is None:
             return
-        n = 0
+        n, seen = 0, set()
         try:
             for r in s.get(keys.key(self.node.ns, KEYFRAMES_KEY) + "/**", payload=protocol.pack({"regions": regions}),
                            timeout=20.0, consolidation=zenoh.ConsolidationMode.NONE):
                 if r.ok is None or str(r.ok.key_expr).split("/")[-2] == self.id:
                     continue
+                data = transport.payload_bytes(r.ok.payload)
+                try:  # each holder sends its copy: one of each, and none already here
+                    m = protocol.unpack(data)
+                    key = (str(m.get("sensor", "depth")), int(m["frame_id"]))
+                except (protocol.ProtocolError, KeyError, TypeError, ValueError):
+                    continue
+                if key in seen or self.node.is_seen(*key):
+                    continue
+                seen.add(key)
                 with self.lock:
-                    self.fetched.append(transport.payload_bytes(r.ok.payload))
+                    self.fetched.append(data)
                 n += 1
         except Exception as e:  # noqa: BLE001 - the resends and the next change try again
             log.warning("fetching keyframes of regions %s failed: %s", regions, e)

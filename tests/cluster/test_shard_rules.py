@@ -16,7 +16,8 @@ MEMBERS = frozenset({"m1", "m2", "m3"})
 
 
 def shard(mid, grid=GRID):
-    node = SimpleNamespace(cfg=SimpleNamespace(checkpoint_dir=None), pipeline=SimpleNamespace(grid=grid), ns="t")
+    node = SimpleNamespace(cfg=SimpleNamespace(checkpoint_dir=None), pipeline=SimpleNamespace(grid=grid), ns="t",
+                           seen={("depth", 1)})
     s = Shard(node, ClusterConfig(enabled=True, mapper_id=mid, region_cells=1))
     s.members = s.ranked_members = MEMBERS
     return s
@@ -48,3 +49,14 @@ def test_default_ids_are_stable_for_a_checkpoint_directory(tmp_path):
     assert default_mapper_id(tmp_path) == default_mapper_id(str(tmp_path) + "/")
     assert default_mapper_id(tmp_path) != default_mapper_id(tmp_path / "other")
     assert "/" not in default_mapper_id(None)
+
+
+def test_the_surfel_publisher_publishes_also_without_submaps_of_its_own():
+    owner = own.surfel_owner(MEMBERS)
+    s, other = shard(owner), shard(sorted(MEMBERS - {owner})[0])
+    s.node.seen = other.node.seen = {("depth", 1)}
+    assert s.surfels_due() and not s.surfels_due()  # once per new keyframe taken
+    s.node.seen = {("depth", 1), ("depth", 2)}
+    assert s.surfels_due()
+    assert not other.surfels_due()  # not its map to publish
+    assert not shard(owner, grid=None).surfels_due()

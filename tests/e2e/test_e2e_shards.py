@@ -72,10 +72,12 @@ def test_three_mapper_shards_share_a_map_survive_a_kill_and_take_in_a_joiner(tmp
                       rng=np.random.default_rng(0), far_margin=0.1)
     gt = seq.gt_sdf(pts)
 
-    def planner():  # asks all along; the map it is served never goes back
+    def planner():  # asks all along for the newest map's answer (exact: not a bake, whose map may trail
+        # the newest one served before, 1.7-1.10); the map it is served never goes back
         with sc.open_session(st.endpoints) as cs:
             while not stop.wait(0.5):
-                status, reply = sc.query_sdf(cs, NS, pts[:200], timeout=10.0)
+                status, reply = sc.request(cs, f"{NS}/query/sdf", {"v": 1, "points": sc.arr(pts[:200], "<f8"),
+                                                                   "exact": True}, 10.0)
                 if status == "ok":
                     served.append((int(reply.get("map_epoch", 0)), int(reply["map_version"])))
 
