@@ -26,7 +26,7 @@ KNOWN_HASHES = {  # jazzy
     "std_srvs/srv/SetBool": "RIHS01_abe9e4bb6b41b40e6789712c00ec8871923e089af3f667a79992a428cff2da0a",
     "std_srvs/srv/Empty": "RIHS01_5888399dedec5ccc85ea6451949fd2c9f97bfdf963f9a588821639fcd31b5d19",
 }
-# ours: pinned so that a change to the definition (which the README documents) is noticed
+# ours: pinned so that a change to the definition (which docs/ros.md documents) is noticed
 GET_DISTANCE_WINDOW_HASH = "RIHS01_c394b0655a0a910b828ced401c96814ecac897ad8b14697daa14453ccab2e41d"
 
 
