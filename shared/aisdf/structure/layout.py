@@ -11,18 +11,22 @@ is a set of predicted surface points (a lattice on each plane), which the served
 treats like measured points: the distance to the nearest of them caps the answer
 (:func:`aisdf.query.answer.served_answer`).
 
-Which planes:
+Which planes (each holding at least ``min_area`` of surfels):
 
-* horizontal planes facing up: only the floor (the lowest such plane holding at least
-  ``min_area``, within ``floor_band`` of the lowest surfel facing up); facing down, the
-  ceiling (the highest). A table's top is furniture, not layout: never extended.
-* vertical planes: every plane of ``min_area`` or more. A piece of furniture's vertical face
-  extended beyond its edges runs through the room's observed free space and is cut away
-  there; walls are carried to the floor and the ceiling where those are known.
+* horizontal: only the floor (the lowest plane facing one way along the vertical) and the
+  ceiling (the highest facing the other way). A table's top is furniture, not layout: never
+  carried on.
+* vertical: every plane. Walls run between the floor and the ceiling where those are known.
 
-How far: ``reach`` metres (in the plane) beyond the plane's surfels, within the map's box
-grown by ``margin``. The prediction is only as good as the assumption that the room is an
-Atlanta room; ``reach`` bounds how far one wrong plane can reach.
+Where a plane's lattice point is predicted: within ``reach`` metres (in the plane) of its
+surfels and inside the map's box grown by ``margin``; in unobserved space, joined to the
+surfels through unobserved lattice points (or ones within ``bridge`` of a surfel, where the
+surface's own voxels are observed); not past a line where another surface meets the plane
+(another surfel within ``meet_tol``, or, in a second pass, another plane's prediction: the
+floor ends at a wall's predicted stretch too); and not where space ``behind`` it was observed
+(seen over a cabinet's top or past a shelf's side, the plane is furniture's face, not a
+wall). The prediction is only as good as the assumption that the room is an Atlanta room;
+``reach`` bounds how far one wrong plane can reach.
 
 Pure: arrays in, arrays out.
 """
@@ -44,12 +48,11 @@ class LayoutConfig:
     plane_tol: float = 0.05  # m: surfels whose offsets along one normal are this close share a plane
     reach: float = 1.5  # m beyond a plane's surfels, in the plane
     margin: float = 0.3  # m beyond the map's box
-    floor_band: float = 0.15  # m: the floor is the lowest up-facing plane this close to the lowest up-facing surfel
     meet_tol: float = 0.05  # m: another surfel this close to a plane meets it there
     bridge: float = 0.2  # m: observed lattice points this close to a surfel still join the extension to it
     max_cells: int = 20_000_000  # a plane's lattice beyond this is not predicted (a bound on time and memory)
     behind: tuple = (0.3, 0.45, 0.6)  # m behind a predicted point that must be unobserved (beyond observed's margin)
-    max_points: int = 2_000_000  # a bound on the prediction's size (the coarsest lattices are thinned first)
+    max_points: int = 2_000_000  # a bound on the prediction's size (beyond it, evenly thinned)
 
 
 @dataclass(eq=False)
