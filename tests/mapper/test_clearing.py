@@ -62,7 +62,8 @@ def _cart_scenes(seed: int = 0):
     centre, half = np.array([p[0], p[1], 0.5]), np.array([0.4, 0.3, 0.5])
     cart = replace(sc, boxes=Boxes(np.concatenate([sc.boxes.centers, centre[None]]),
                                    np.concatenate([sc.boxes.rotations, np.eye(3)[None]]),
-                                   np.concatenate([sc.boxes.halves, half[None]])))
+                                   np.concatenate([sc.boxes.halves, half[None]])),
+                   kinds=None if sc.kinds is None else (*sc.kinds, "cart"))
 
     def phantom(P: np.ndarray) -> np.ndarray:
         """Points on the cart's surface (within 5 cm of its box, above the floor) that no

@@ -224,6 +224,7 @@ def test_one_network_sends_its_measured_points_1_5(seq):
     old.measured = None  # what a 1.4 mapper sent
     e_old = QueryEngine(device="cpu")
     for eng, s in ((e, snap), (e13, snap), (e_old, old)):
+        eng.baker.layout_prior = False  # the rule of 1.5 alone (1.13's cap on top: tests/query/test_layout_answer.py)
         assert eng.set_weights(s) and eng.set_surfels(smap)
     assert len(e.state.measured) == len(pts_m) and e13.state.measured is None and e_old.state.measured is None
     pts = eval_points(frames, n_points=3000, every=1, rng=0).astype(np.float32)
