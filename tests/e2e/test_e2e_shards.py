@@ -9,10 +9,10 @@ import time
 
 import numpy as np
 import pytest
-import zenoh
 
 from aisdf import keys, protocol, transport
 from aisdf.stack import Stack, wait_for
+from aisdf.bench import cluster as bench_cluster
 
 pytestmark = pytest.mark.e2e
 NS = "aisdf/e2e14"
@@ -24,13 +24,7 @@ FRONTEND = ["--set", "n_frames=600", "--set", "width=80", "--set", "height=60", 
 
 def mapper_infos(s) -> dict[str, dict]:
     """Every mapper's info/mapper (with the keys of its keyframes), by mapper id."""
-    out = {}
-    for r in s.get(keys.key(NS, "info/mapper"), payload=protocol.pack({"keys": True}), timeout=5.0,
-                   consolidation=zenoh.ConsolidationMode.NONE):
-        if r.ok is not None:
-            m = protocol.unpack(transport.payload_bytes(r.ok.payload))
-            out[m["cluster"]["id"]] = m
-    return out
+    return bench_cluster.mapper_infos(s, NS)
 
 
 def missing_at_owners(infos: dict[str, dict]) -> list:

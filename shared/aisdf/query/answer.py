@@ -53,11 +53,10 @@ def served_answer(points: np.ndarray, sdf_i: np.ndarray, grad_i: np.ndarray | No
 
 
 def layout_cap(points: np.ndarray, sdf: np.ndarray, grad: np.ndarray | None, layout: NearestMeasured,
-               radius: float = DEFAULT_FUSE_RADIUS, workers: int = 1,
-               flag: bool = False):
+               radius: float = DEFAULT_FUSE_RADIUS, workers: int = 1):
     """The answer capped at the nearest predicted surface point plus ``LAYOUT_SLACK`` where
     that is nearer (outside the surfaces, within ``radius``); the gradient there points away
-    from that point. With ``flag``: also (N,) bool, the answers the prediction set."""
+    from that point."""
     d_p, g_p = layout.nearest(points, within=radius, workers=workers)
     sdf = np.asarray(sdf, np.float64)
     cap = d_p + LAYOUT_SLACK
@@ -65,7 +64,7 @@ def layout_cap(points: np.ndarray, sdf: np.ndarray, grad: np.ndarray | None, lay
     sdf = np.where(use, cap, sdf)
     if grad is not None:
         grad = np.where(use[:, None], g_p, grad)
-    return (sdf, grad, use) if flag else (sdf, grad)
+    return sdf, grad
 
 
 def predicted_layout(state, cfg=None):
