@@ -41,8 +41,8 @@ robot's keyframes stay redundant. Off with ``keyframes.clear_free_space = false`
 
 from __future__ import annotations
 
-import cv2
 import numpy as np
+from scipy import ndimage
 
 from .. import geometry
 from ..observed import pack_keys, unpack_keys
@@ -69,8 +69,8 @@ class FreeSpace:
         d = np.where(geometry.valid_depth(depth, max_depth), depth, 0.0).astype(np.float32)
         H, W = d.shape
         r = 2 if W >= 320 else 1
-        # the minimum over the window; the border counts as far (erode's default), holes as 0
-        self.dmin = cv2.erode(d, np.ones((2 * r + 1, 2 * r + 1), np.uint8))
+        # the minimum over the window; the border adds nothing (as cv2.erode's default), holes as 0
+        self.dmin = ndimage.minimum_filter(d, size=2 * r + 1, mode="nearest")
         self.K = np.asarray(K, np.float64)
         T = np.asarray(T_WC, np.float64)
         self.R, self.t = T[:3, :3], T[:3, 3]
