@@ -2,7 +2,7 @@
 #   make demo   - the whole stack on the built-in synthetic building, on loopback
 #   make test   - the test suite
 #   make compose-test - builds the image, runs docker-compose.yml on the host network and checks
-#                  it (needs a Docker engine; not part of make test)
+#                  it (needs a Docker engine; not part of make test; ARGS=--tls, ARGS=--scaled)
 #   make mutation - breaks the product in named ways, one at a time in a copy of the tree, and
 #                  checks the tests catch each (minutes; not part of make test; docs/testing.md)
 PYTHON ?= python3

@@ -276,15 +276,30 @@ def slot_of(cid: str) -> tuple[int, list[str]]:
     return int(locks[0]), re.findall(r"-> (\S+/mapper-journal\.bin)$", fds, re.M)
 
 
+def all_members(s, want: set[str], what: str) -> dict[str, dict]:
+    """info/mapper of each mapper, once the mappers are ``want`` and each lists them all as members."""
+    from aisdf.bench.cluster import mapper_infos
+
+    seen = {}
+
+    def ok():
+        i = mapper_infos(s, NS)
+        seen.update(last={k: v["cluster"]["members"] for k, v in i.items()})
+        return i if set(i) == want and all(set(m) == want for m in seen["last"].values()) else None
+
+    try:
+        return wait_for(ok, 120, period=1.0, what=what)
+    except TimeoutError as e:
+        raise SystemExit(f"FAILED: {e}; mappers answering info/mapper and their members: {seen.get('last')}") from None
+
+
 def check_scaled(s, planner_opts) -> None:
     from aisdf.bench.cluster import mapper_infos
     from aisdf.client import SdfClient
 
     # each mapper container its own slot, its own journal, its id mapper-<n>, all three members
     want = {f"mapper-{n}" for n in range(1, SCALE["mapper"] + 1)}
-    infos = wait_for(lambda: (lambda i: i if set(i) == want and all(set(v["cluster"]["members"]) == want
-                                                                   for v in i.values()) else None)(
-        mapper_infos(s, NS)), 120, period=1.0, what="every mapper listing all members")
+    infos = all_members(s, want, "every mapper listing all members")
     say("mappers: " + "; ".join(f"{k} members {v['cluster']['members']}" for k, v in sorted(infos.items())))
     slots = {}
     for c in containers("mapper"):
@@ -359,9 +374,7 @@ def check_scaled(s, planner_opts) -> None:
     t = time.monotonic()
     wait_for(lambda: health_of(c2).startswith("healthy"), 180, period=2.0, what="slot 2's container healthy again")
     n, _ = slot_of(c2)
-    infos = wait_for(lambda: (lambda i: i if set(i) == want and all(set(v["cluster"]["members"]) == want
-                                                                   for v in i.values()) else None)(
-        mapper_infos(s, NS)), 120, period=1.0, what="every mapper listing all members again")
+    infos = all_members(s, want, "every mapper listing all members again")
     say(f"restarted slot 2's container: healthy {time.monotonic() - t:.1f} s later, holds slot-{n}, "
         f"mapper-2 back with {infos['mapper-2']['keyframes']} keyframes "
         f"({before} before)")
