@@ -19,6 +19,7 @@ announce themselves (``status/query/<id>``, ``query/replica/<id>``, the id the c
 health check reads) and answer a request sent to each, a planner's ``SdfClient`` gets a map's
 answer through the router, and every keyframe the frontend selected is held by a mapper. Then
 it restarts the container of slot 2 and checks it comes back as mapper-2 on slot 2.
+``--tls --scaled``: the same over the TLS profile.
 
 Environment: AISDF_ZENOH_PORT (default 37447), AISDF_TORCH_FIND_LINKS (a URL or folder,
 reachable from the build, holding a CPU wheel of torch, for machines that cannot reach
