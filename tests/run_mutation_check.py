@@ -130,6 +130,20 @@ BREAKAGES = [
     Breakage("layout-not-baked", "the bake leaves the layout cap out (exact answers keep it)",
              "shared/aisdf/query/baker.py", "self.fuse_radius, layout=lay)", "self.fuse_radius, layout=None)",
              ("tests/query/test_layout_answer.py",)),
+    Breakage("far-floor-off", "the served answer is no longer raised far from the measured points",
+             "shared/aisdf/query/answer.py", "    use = np.isfinite(d_m) & np.isfinite(floor)",
+             "    use = np.zeros(len(sdf), bool) & np.isfinite(floor)", ("tests/query/test_far_floor.py", "tests/query/test_changes.py")),
+    Breakage("far-floor-ignores-surfels", "the floor rises past a nearer surfel to the nearest measured point",
+             "shared/aisdf/query/answer.py", "    cands = [d_m, np.abs(np.asarray(d_e, np.float64))]\n",
+             "    cands = [d_m, np.full(len(d_m), np.inf)]\n", ("tests/query/test_far_floor.py",)),
+    Breakage("far-floor-unsupported-surfels", "every surfel bounds the floor, measured where it reaches or not",
+             "shared/aisdf/query/answer.py", "    ask = np.isfinite(d_e) & (np.abs(d_e) < d_m) & (d_m > FLOOR_NEAR)\n",
+             "    ask = np.zeros(len(d_e), bool)\n", ("tests/query/test_far_floor.py",)),
+    Breakage("floor-support-not-rebaked", "the re-bake ignores measured points that only change a surfel's support",
+             "shared/aisdf/query/baker.py", "points, grow + FLOOR_SUPPORT, eps=1e-3 + FLOOR_SUPPORT)",
+             "points, grow)", ("tests/query/test_changes.py::test_measured_points_1_4_answers_bake_and_the_1_3_answer",)),
+    Breakage("far-floor-raises-inside", "the floor raises points behind their nearest surfel (inside solids)",
+             "shared/aisdf/query/answer.py", "behind=(np.asarray(d_e) < 0) & within)", "behind=np.zeros(len(d_e), bool))", ("tests/query/test_far_floor.py",)),
 ]
 
 

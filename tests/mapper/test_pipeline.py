@@ -195,6 +195,7 @@ def test_one_network_sends_its_measured_points_1_5(seq):
     query service with ``measured`` off (as a 1.4 service, which ignored them on
     ``map/weights``) answer 1.3's fused answer. Checkpoints keep the pool; one from before
     1.5 rebuilds it from its keyframes."""
+    from aisdf.query.answer import far_floor, surfel_support
     from aisdf.structure.measured import MeasuredPoints, MeasuredSurface, measured_fuse_grad
     from aisdf.structure.surfel_map import explicit_sdf
     from aisdf.metrics import eval_points
@@ -235,9 +236,12 @@ def test_one_network_sends_its_measured_points_1_5(seq):
     np.testing.assert_array_equal(r_old.gradient, r13.gradient)
     imp = e.answer_sdf(query_messages.SdfRequest(pts, gradient=True, source="implicit"))
     d_e, g_e, _ = explicit_sdf(pts.astype(np.float64), Surfels.from_protocol_dict(smap.surfels))
-    d_m, g_m = MeasuredPoints(pts_m).nearest(pts)
+    d_m, g_m = MeasuredPoints(pts_m).nearest(pts, within=2.0)
     want, want_g = measured_fuse_grad(r13.sdf, r13.gradient, imp.sdf, d_e.astype(np.float32),
                                       g_e.astype(np.float32), d_m, g_m, radius=2.0)
+    within = np.abs(d_e) <= 2.0  # 1.15's floor, with the surfels its measured points support
+    ok = surfel_support(pts, d_e, g_e, d_m, MeasuredPoints(pts_m)) & within
+    want, want_g = far_floor(want, want_g, d_m, g_m, np.where(ok, d_e, np.inf), g_e, behind=(d_e < 0) & within)
     np.testing.assert_allclose(rep.sdf, want, atol=1e-6)
     np.testing.assert_allclose(rep.gradient, want_g, atol=1e-5)
     gt = seq.gt_sdf(pts)

@@ -31,7 +31,7 @@ from ..baked import BakeConfig, BakedField, bake
 from ..memory import trim
 from ..structure.fusion import DEFAULT_FUSE_RADIUS
 from ..structure.surfel_types import Surfels
-from .answer import predicted_layout, served_answer
+from .answer import FLOOR_SUPPORT, predicted_layout, served_answer
 from .changes import layout_changes, measured_changes, measured_dirty, submaps_changed_at, surfel_dirty
 from .mapstate import MapState
 
@@ -225,7 +225,8 @@ class Baker:
         def dirty(points: np.ndarray) -> np.ndarray:
             d = near_changed_surfel(points)
             if moved is not None:  # a measured point counts within fuse_radius, where it is the nearest
-                d |= measured_dirty(moved, new.measured, points, grow)
+                # (or, 1.15's floor, within FLOOR_SUPPORT of the nearest surfel's point it supports)
+                d |= measured_dirty(moved, new.measured, points, grow + FLOOR_SUPPORT, eps=1e-3 + FLOOR_SUPPORT)
             if layout_moved is not None:  # the same rule for the predicted points
                 d |= measured_dirty(layout_moved, new_layout, points, grow)
             if grid is not None:

@@ -169,7 +169,10 @@ def measured_dirty(moved: MeasuredPoints | None, held: MeasuredPoints | None, po
     holds ``held``. The answer depends on the measured points through the nearest one, and
     only within the fusion radius (``grow`` is that radius, or more), so a point is dirty only
     when a moved point is within ``grow`` of it and no farther than the nearest held point (+
-    ``eps``): elsewhere the same unchanged point is the nearest before and after."""
+    ``eps``): elsewhere the same unchanged point is the nearest before and after. (The fused
+    answer's floor, 1.15, also asks whether a measured point lies within ``FLOOR_SUPPORT`` of
+    the nearest surfel's nearest point, a surfel no farther than the nearest measured point:
+    the callers add that to ``grow`` and ``eps``.)"""
     p = np.asarray(points, np.float64).reshape(-1, 3)
     if moved is None or not len(p):
         return np.zeros(len(p), bool)

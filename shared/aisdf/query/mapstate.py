@@ -158,6 +158,7 @@ class Staleness:
         pts = np.asarray(pts, np.float64).reshape(-1, 3)
         if self.everywhere:
             return np.ones(len(pts), bool)
+        from .answer import FLOOR_SUPPORT
         from .changes import measured_dirty, submaps_changed_at
 
         out = np.zeros(len(pts), bool)
@@ -169,7 +170,8 @@ class Staleness:
             out[rest] = self.surfels_moved(pts[rest])
         if self.moved is not None and (~out).any():
             rest = np.flatnonzero(~out)
-            out[rest] = measured_dirty(self.moved, self.answer.measured, pts[rest], self.radius)
+            out[rest] = measured_dirty(self.moved, self.answer.measured, pts[rest], self.radius + FLOOR_SUPPORT,
+                                       eps=1e-3 + FLOOR_SUPPORT)  # (1.15's floor: a surfel's support)
         return out
 
 
