@@ -1,6 +1,7 @@
 """Packaging, entry points, compose file and image recipe (no Docker engine runs here)."""
 
 import re
+import shlex
 import subprocess
 import sys
 import tomllib
@@ -50,6 +51,9 @@ def test_compose_services_run_real_entry_points():
     bindir = Path(sys.executable).parent
     for name in ("query", "mapper", "frontend"):
         cmd = services[name]["command"]
+        if cmd[:2] == ["sh", "-c"]:  # a shell that picks the replica id, then execs the service
+            tail = cmd[2].split("exec ", 1)[1].replace("$$", "$")
+            cmd = [a.replace("$id", "composetest-0a1b2c") for a in shlex.split(tail)]
         assert cmd[0] in scripts, f"{name}: {cmd[0]} is not a console script"
         # Run the exact command (with the container's paths mapped to the repo) up to its resolved config.
         args = [a.replace("/etc/aisdf/zenoh.json5", str(ROOT / "deploy/zenoh-client.json5"))
@@ -76,11 +80,20 @@ def test_compose_health_checks_and_start_order():
     for name, svc in services.items():
         assert svc.get("healthcheck", {}).get("test"), f"{name} has no health check"
     for name in ("query", "mapper", "frontend"):
-        assert services[name]["healthcheck"]["test"][:3] == ["CMD", "aisdf-health", name]
+        test = services[name]["healthcheck"]["test"]
+        if test[0] == "CMD-SHELL":
+            assert re.search(rf"(^|&& )aisdf-health {name} ", test[1]), test
+        else:
+            assert test[:3] == ["CMD", "aisdf-health", name]
         assert services[name]["depends_on"]["zenoh"] == {"condition": "service_healthy"}
     assert services["frontend"]["depends_on"]["mapper"] == {"condition": "service_healthy"}
-    # query replicas (docker compose up --scale query=2): each checks its own token, not any replica's
-    assert "--own-host" in services["query"]["healthcheck"]["test"]
+    # query replicas (--scale query=2, host networking: one host name): each checks its own token,
+    # the id its command picked and wrote down, not any replica's
+    q = services["query"]
+    assert "/tmp/aisdf-replica-id" in q["command"][2] and '--replica-id "$$id"' in q["command"][2]
+    assert '--id-prefix "$$(cat /tmp/aisdf-replica-id)"' in q["healthcheck"]["test"][1]
+    # mapper slots (--scale mapper=3): each checks the id of the slot its process holds
+    assert "--id-prefix mapper-" in services["mapper"]["healthcheck"]["test"][1]
 
 
 def test_overrides_keep_traffic_on_the_host_network():
