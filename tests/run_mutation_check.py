@@ -140,7 +140,7 @@ BREAKAGES = [
              "shared/aisdf/query/answer.py", "    ask = np.isfinite(d_e) & (np.abs(d_e) < d_m) & (d_m > FLOOR_NEAR)\n",
              "    ask = np.zeros(len(d_e), bool)\n", ("tests/query/test_far_floor.py",)),
     Breakage("floor-support-not-rebaked", "the re-bake ignores measured points that only change a surfel's support",
-             "shared/aisdf/query/baker.py", "points, grow + FLOOR_SUPPORT, eps=1e-3 + FLOOR_SUPPORT)",
+             "shared/aisdf/query/baker.py", "points, grow, support=FLOOR_SUPPORT)",
              "points, grow)", ("tests/query/test_changes.py::test_measured_points_1_4_answers_bake_and_the_1_3_answer",)),
     Breakage("far-floor-raises-inside", "the floor raises points behind their nearest surfel (inside solids)",
              "shared/aisdf/query/answer.py", "behind=(np.asarray(d_e) < 0) & within)", "behind=np.zeros(len(d_e), bool))", ("tests/query/test_far_floor.py",)),

@@ -55,15 +55,14 @@ def served_answer(points: np.ndarray, sdf_i: np.ndarray, grad_i: np.ndarray | No
         d_m, g_m = measured.nearest(points, within=radius, workers=workers)
         sdf, grad = measured_fuse_grad(sdf, grad, sdf_i, d_e, g_e, d_m, g_m if grad is not None else None,
                                        radius=radius)
-        if d_p is not None:
-            sdf, grad = layout_cap(points, sdf, grad, layout, radius, workers, nearest=(d_p, g_p))
+    if d_p is not None:
+        sdf, grad = layout_cap(points, sdf, grad, layout, radius, workers, nearest=(d_p, g_p))
+    if measured is not None:
         # A surfel counts within the radius only, as everywhere in the rule (the bake's changes rely on it).
         within = np.abs(np.asarray(d_e, np.float64)) <= radius
         support = surfel_support(points, d_e, g_e, d_m, measured, workers) & within
         sdf, grad = far_floor(sdf, grad, d_m, g_m, np.where(support, d_e, np.inf), g_e, d_p, g_p,
                               behind=(np.asarray(d_e) < 0) & within)
-    elif d_p is not None:
-        sdf, grad = layout_cap(points, sdf, grad, layout, radius, workers, nearest=(d_p, g_p))
     return np.asarray(sdf, np.float32), (None if grad is None else np.asarray(grad, np.float32))
 
 

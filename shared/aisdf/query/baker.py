@@ -226,7 +226,7 @@ class Baker:
             d = near_changed_surfel(points)
             if moved is not None:  # a measured point counts within fuse_radius, where it is the nearest
                 # (or, 1.15's floor, within FLOOR_SUPPORT of the nearest surfel's point it supports)
-                d |= measured_dirty(moved, new.measured, points, grow + FLOOR_SUPPORT, eps=1e-3 + FLOOR_SUPPORT)
+                d |= measured_dirty(moved, new.measured, points, grow, support=FLOOR_SUPPORT)
             if layout_moved is not None:  # the same rule for the predicted points
                 d |= measured_dirty(layout_moved, new_layout, points, grow)
             if grid is not None:

@@ -163,16 +163,17 @@ def measured_changes(old, new, cells) -> MeasuredPoints | None:
 
 
 def measured_dirty(moved: MeasuredPoints | None, held: MeasuredPoints | None, points: np.ndarray, grow: float,
-                   eps: float = 1e-3) -> np.ndarray:
+                   eps: float = 1e-3, support: float = 0.0) -> np.ndarray:
     """(N,) bool: where the nearest measured point may differ between two maps whose measured
     points differ by ``moved`` (``measured_changes``: in one map only) and of which the newer
     holds ``held``. The answer depends on the measured points through the nearest one, and
     only within the fusion radius (``grow`` is that radius, or more), so a point is dirty only
     when a moved point is within ``grow`` of it and no farther than the nearest held point (+
-    ``eps``): elsewhere the same unchanged point is the nearest before and after. (The fused
-    answer's floor, 1.15, also asks whether a measured point lies within ``FLOOR_SUPPORT`` of
-    the nearest surfel's nearest point, a surfel no farther than the nearest measured point:
-    the callers add that to ``grow`` and ``eps``.)"""
+    ``eps``): elsewhere the same unchanged point is the nearest before and after. ``support``:
+    the answer also asks whether a measured point lies within this of something no farther
+    than the nearest measured point (the fused answer's floor, 1.15: of the nearest surfel's
+    nearest point, ``answer.FLOOR_SUPPORT``), so a moved point that much farther counts too."""
+    grow, eps = grow + support, eps + support
     p = np.asarray(points, np.float64).reshape(-1, 3)
     if moved is None or not len(p):
         return np.zeros(len(p), bool)

@@ -170,8 +170,8 @@ class Staleness:
             out[rest] = self.surfels_moved(pts[rest])
         if self.moved is not None and (~out).any():
             rest = np.flatnonzero(~out)
-            out[rest] = measured_dirty(self.moved, self.answer.measured, pts[rest], self.radius + FLOOR_SUPPORT,
-                                       eps=1e-3 + FLOOR_SUPPORT)  # (1.15's floor: a surfel's support)
+            out[rest] = measured_dirty(self.moved, self.answer.measured, pts[rest], self.radius,
+                                       support=FLOOR_SUPPORT)  # (1.15's floor: a surfel's support)
         return out
 
 
