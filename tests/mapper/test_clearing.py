@@ -54,6 +54,44 @@ def test_a_depth_edge_does_not_clear_the_nearer_surface_beside_it():
     assert ev.passed(np.array([[(100 - 80) / 100 * 2.0, 0.0, 2.0]]))[0]
 
 
+def _person_then_table(band: bool = True):
+    """A person (rows 40-57, 1.6 m) in front of a wall (3 m), then the same view without
+    them: a table top's edge at row 60 (2 m below it), and, as depth cameras do, a band of
+    dropped pixels (rows 57-59) along the edge."""
+    before = _wall(3.0)
+    before[40:58, 60:100] = 1.6
+    before[60:, :] = 2.0
+    after = _wall(3.0)
+    after[60:, :] = 2.0
+    if band:
+        after[57:60, :] = 0.0
+    return before, after
+
+
+def test_a_window_with_the_hole_band_of_a_depth_edge_clears_the_measured_points_but_not_pixels():
+    from aisdf.structure.measured import MeasuredSurface
+    _, after = _person_then_table()
+    ev = clearing.FreeSpace(after, K, np.eye(4))
+    # rows 56 (own pixel measured, 6 of 9 of its window), 58 (own pixel a hole), 61 (the table)
+    pts = np.array([[0.0, (56 - 60) / 100 * 1.6, 1.6], [0.0, (58 - 60) / 100 * 1.6, 1.6],
+                    [0.0, (61 - 60) / 100 * 2.0, 2.0]])
+    assert ev.passed(pts, holes=True).tolist() == [True, False, False]
+    assert ev.passed(pts).tolist() == [False, False, False]  # pixels and surfels: strict
+    before, after = _person_then_table()
+    m = MeasuredSurface(min_hits=1)
+    m.add(before, K, np.eye(4))
+    person = lambda P: np.abs(P[:, 2] - 1.6) < 0.05  # noqa: E731
+    assert person(_measured_points(m)).sum() >= 8
+    keys, pts, solid = clearing.clear_measured(m, clearing.FreeSpace(after, K, np.eye(4)))
+    assert person(pts).all() and person(_measured_points(m)).sum() == 0  # every person voxel, nothing else
+    # without the band every window is whole: the same voxels go, and all of them are news
+    m2 = MeasuredSurface(min_hits=1)
+    m2.add(before, K, np.eye(4))
+    keys2, _, solid2 = clearing.clear_measured(m2, clearing.FreeSpace(_person_then_table(band=False)[1], K, np.eye(4)))
+    assert keys2.tolist() == keys.tolist() and solid2 == len(keys2)
+    assert solid < solid2  # the voxels only a window with holes passes are not news
+
+
 def _cart_scenes(seed: int = 0):
     seq = SyntheticSequence(building="office", n_frames=600, H=H, W=W, seed=seed)
     sc = seq.scene
