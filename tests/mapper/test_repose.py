@@ -186,3 +186,46 @@ def test_a_batch_moving_most_of_the_map_pools_every_point_again(seq, monkeypatch
     p = build(seq, "single", WRONG)
     p.repose(corrections(seq))
     assert_same_knowledge(right, p)
+
+
+@pytest.mark.parametrize("kind", ["submaps", "single"])
+def test_a_wall_walked_twice_with_drift_shows_one_surface_after_the_corrections(kind):
+    """The office walked twice; the second pass sent 20 cm off, the camera believing itself
+    farther from the wall it faces. Across that wall (points within 15 cm of a line along its
+    normal) the measured points and the surfels show two surfaces, 20 cm apart; after the
+    second pass's corrections, one, where the wall is. Default keyframe policy (clearing on)."""
+    from aisdf.structure.surfel_map import explicit_sdf
+
+    office = SyntheticSequence(building="office", n_frames=120, H=60, W=80, seed=2)
+    frames, shift = range(0, 120, 10), 0.2
+    f = office.frame(30)
+    p0 = f["T_WC"][:3, :3] @ np.array([0.0, 0.0, float(f["depth"][30, 40])]) + f["T_WC"][:3, 3]
+    _, n = office.scene.sdf_and_gradient(p0[None])
+    n = n[0] / np.linalg.norm(n[0])  # out of the wall, towards the camera
+    assert office.scene.nearest_kind(p0[None]).tolist() == ["room"] and abs(n @ office.scene.up_W) < 0.01
+
+    def profile(m):
+        """(measured points' offsets along n, rounded to 5 cm; the surfels' sign changes along n)."""
+        rel = m.measured_points().astype(np.float64) - p0
+        s = rel @ n
+        near = (np.linalg.norm(rel - s[:, None] * n, axis=1) < 0.15) & (np.abs(s) < 0.5)
+        line = np.arange(-0.3, 0.5, 0.01)
+        d = explicit_sdf(p0 + line[:, None] * n, m.surfels())[0]
+        return sorted({round(float(x) / 0.05) * 0.05 for x in s[near]}), line[np.nonzero(np.diff(np.sign(d)))[0]]
+
+    m = make_mapper(kind, "cpu", SMALL)
+    for second in (False, True):
+        for i in frames:
+            msg = keyframe_message(office.frame(i))
+            if second:
+                msg.frame_id, msg.T_WC = 1000 + i, msg.T_WC.copy()
+                msg.T_WC[:3, 3] += shift * n
+            m.add_keyframe(msg)
+    measured, crossings = profile(m)
+    assert measured == [0.0, 0.2]  # the wall and its ghost 20 cm in front (measured: 0.008 and 0.208 m)
+    assert np.abs(crossings - 0.2).min() < 0.02 and np.abs(crossings).min() < 0.02
+    rep = m.repose({("depth", 1000 + i): office.frame(i)["T_WC"] for i in frames})
+    assert rep["reposed"] == len(frames)
+    measured, crossings = profile(m)
+    assert measured == [0.0]  # one surface, where the wall is
+    assert len(crossings) == 1 and abs(crossings[0]) < 0.02
