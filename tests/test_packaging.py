@@ -91,9 +91,10 @@ def test_compose_health_checks_and_start_order():
     # the id its command picked and wrote down, not any replica's
     q = services["query"]
     assert "/tmp/aisdf-replica-id" in q["command"][2] and '--replica-id "$$id"' in q["command"][2]
-    assert '--id-prefix "$$(cat /tmp/aisdf-replica-id)"' in q["healthcheck"]["test"][1]
-    # mapper slots (--scale mapper=3): each checks the id of the slot its process holds
-    assert "--id-prefix mapper-" in services["mapper"]["healthcheck"]["test"][1]
+    assert '--id "$$(cat /tmp/aisdf-replica-id)"' in q["healthcheck"]["test"][1]
+    # mapper slots (--scale mapper=3): each checks the exact id of the slot its process holds
+    # (a prefix would let mapper-1 take mapper-10's token for its own)
+    assert "--id mapper-" in services["mapper"]["healthcheck"]["test"][1]
 
 
 def test_overrides_keep_traffic_on_the_host_network():

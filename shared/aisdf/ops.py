@@ -7,9 +7,11 @@ the same with ``-c FILE``; this one needs nothing beyond the services' image.
 ``aisdf-health SERVICE``: exit 0 when a service's liveliness token
 (``<namespace>/status/<service>/*``) is on the Zenoh network, 1 when not; ``router`` checks
 that a router answers. The containers' health checks run it with the service's own Zenoh
-configuration. ``--id-prefix P`` counts only tokens whose id starts with ``P``, ``--own-host``
-only those of this host's query replicas (``<host>-``, their default ids): with several query
-replicas (``docker compose up --scale query=2``) each container checks its own, not any.
+configuration. ``--id ID`` counts only the token with exactly that id, ``--id-prefix P`` those
+whose id starts with ``P``, ``--own-host`` those of this host's query replicas (``<host>-``,
+their default ids): with several query replicas or mapper slots (``docker compose up --scale
+query=2 --scale mapper=3``) each container checks its own (``--id``: ``mapper-1`` must not
+take ``mapper-10`` for itself), not any.
 """
 
 from __future__ import annotations
@@ -47,9 +49,10 @@ def router_cli(argv: list[str] | None = None) -> None:
     run_router(cfg, service_setup(cfg, "router"))
 
 
-def healthy(cfg: ServiceConfig, service: str, timeout: float = 3.0, id_prefix: str = "") -> bool:
+def healthy(cfg: ServiceConfig, service: str, timeout: float = 3.0, id_prefix: str = "",
+            exact: bool = False) -> bool:
     """Whether a ``service`` liveliness token ``status/<service>/<id>`` with an id starting with
-    ``id_prefix`` is seen (``router``: whether a router is connected)."""
+    ``id_prefix`` (``exact``: equal to it) is seen (``router``: whether a router is connected)."""
     conf = transport.zenoh_config(cfg.zenoh)
     with zenoh.open(conf) as session:
         end = time.monotonic() + timeout
@@ -60,7 +63,10 @@ def healthy(cfg: ServiceConfig, service: str, timeout: float = 3.0, id_prefix: s
             else:
                 for reply in session.liveliness().get(keys.status_key(cfg.namespace, service, "*"),
                                                       timeout=max(0.1, end - time.monotonic())):
-                    if reply.ok is not None and str(reply.ok.key_expr).rsplit("/", 1)[-1].startswith(id_prefix):
+                    if reply.ok is None:
+                        continue
+                    rid = str(reply.ok.key_expr).rsplit("/", 1)[-1]
+                    if rid == id_prefix if exact else rid.startswith(id_prefix):
                         return True
             if time.monotonic() >= end:
                 return False
@@ -74,18 +80,20 @@ def health_cli(argv: list[str] | None = None) -> None:
     p.add_argument("service", help="frontend, mapper, query, or router")
     p.add_argument("--timeout", type=float, default=3.0, help="seconds to wait (default 3)")
     own = p.add_mutually_exclusive_group()
+    own.add_argument("--id", default="", help="only the token with exactly this id (status/SERVICE/<id>)")
     own.add_argument("--id-prefix", default="", help="only a token whose id (status/SERVICE/<id>) starts with this")
     own.add_argument("--own-host", action="store_true", help="only this host's query replicas: --id-prefix "
                      "'<host>-', the start of their default ids (in a container: the container's hostname)")
     add_common_args(p)
     args = p.parse_args(argv)
-    if args.service == "router" and (args.id_prefix or args.own_host):
-        p.error("--id-prefix and --own-host are for services' tokens, not 'router'")
-    prefix = f"{keys.host_chunk()}-" if args.own_host else args.id_prefix
+    if args.service == "router" and (args.id or args.id_prefix or args.own_host):
+        p.error("--id, --id-prefix and --own-host are for services' tokens, not 'router'")
+    prefix = f"{keys.host_chunk()}-" if args.own_host else args.id or args.id_prefix
     if any(c in prefix for c in "/*$?#"):
-        p.error(f"invalid --id-prefix {prefix!r}: part of one key chunk, no '/' or wildcards")
+        p.error(f"invalid {'--id' if args.id else '--id-prefix'} {prefix!r}: part of one key chunk, no '/' or wildcards")
     cfg = config_from_args(ServiceConfig, args)
     logging.basicConfig(level=logging.WARNING)
-    ok = healthy(cfg, args.service, args.timeout, prefix)
-    print(f"{args.service}{f' {prefix}*' if prefix else ''}: {'healthy' if ok else 'not seen'}")
+    ok = healthy(cfg, args.service, args.timeout, prefix, exact=bool(args.id))
+    shown = f" {prefix}" if args.id else f" {prefix}*" if prefix else ""
+    print(f"{args.service}{shown}: {'healthy' if ok else 'not seen'}")
     sys.exit(0 if ok else 1)

@@ -176,10 +176,12 @@ def test_health_checks_with_each_service_identity(deployment):
     codes["query --id-prefix <its id>"] = health(conf["query"], "query", "--id-prefix", rid)
     codes["query --id-prefix elsewhere-"] = health(conf["query"], "query", "--id-prefix", "elsewhere-")
     codes["query --id-prefix a/*"] = health(conf["query"], "query", "--id-prefix", "a/*")  # usage error
+    codes["query --id <its id>"] = health(conf["query"], "query", "--id", rid)
+    codes["query --id <its id less a char>"] = health(conf["query"], "query", "--id", rid[:-1])  # not a prefix
     print(f"aisdf-health exit codes (query replica {rid}):", codes)
     assert codes == {"mapper": 0, "query": 0, "frontend": 0, "router": 0, "planner sees mapper": 1,
                      "query --own-host": 0, "query --id-prefix <its id>": 0, "query --id-prefix elsewhere-": 1,
-                     "query --id-prefix a/*": 2}
+                     "query --id-prefix a/*": 2, "query --id <its id>": 0, "query --id <its id less a char>": 1}
 
 
 def test_planner_follows_the_query_replica(deployment):
