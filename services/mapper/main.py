@@ -71,6 +71,14 @@ class MapperNode:
             cfg = cfg.model_copy(update={"checkpoint_dir": self.slot.dir, "cluster": cfg.cluster.model_copy(
                 update={"mapper_id": cfg.cluster.mapper_id or self.slot.mapper_id})})
             log.info("state in %s (slot %d)", self.slot.dir, self.slot.n)
+        self.dir_lock = None  # one writer per checkpoint directory: a second mapper given it stops here
+        if self.slot is None and cfg.checkpoint_dir:
+            from .slots import lock_dir
+
+            try:
+                self.dir_lock = lock_dir(cfg.checkpoint_dir)
+            except RuntimeError as e:
+                raise SystemExit(f"aisdf-mapper: {e}") from None
         self.cfg = cfg
         self.session = session
         self.ns = cfg.namespace
@@ -477,8 +485,9 @@ class MapperNode:
         self.save_checkpoint()
         if self.journal is not None:
             self.journal.close()
-        if self.slot is not None:
-            self.slot.release()
+        for held in (self.slot, self.dir_lock):
+            if held is not None:
+                held.release()
 
 
 def _identity(msg) -> tuple[str, int] | None:

@@ -5,7 +5,11 @@ exclusive ``flock`` for as long as the process lives (the lock goes with the pro
 it dies). The slot also names the mapper (``mapper-<n>``), so a re-created container takes
 its predecessor's state and id: the same regions, no two writers on one journal. (flock
 needs the replicas on one host, as compose's scaling is; across hosts, give each mapper its
-own directory and ``cluster.mapper_id``.)"""
+own directory and ``cluster.mapper_id``.)
+
+A mapper without slots locks its checkpoint directory itself (``lock_dir``): a second mapper
+given the same directory (``docker compose up --scale mapper=3`` without shards) stops at once
+with a clear error instead of writing the first one's journal."""
 
 from __future__ import annotations
 
@@ -33,6 +37,9 @@ class Slot:
             os.close(self._fd)
             self._fd = -1
 
+    def __del__(self) -> None:  # a node that failed to start holds nothing
+        self.release()
+
 
 def claim(root: str | Path, max_slots: int = MAX_SLOTS) -> Slot:
     """The lowest free slot under ``root`` (created when needed), locked; RuntimeError when all
@@ -49,3 +56,20 @@ def claim(root: str | Path, max_slots: int = MAX_SLOTS) -> Slot:
             continue
         return Slot(root, n, fd)
     raise RuntimeError(f"all {max_slots} mapper slots under {root} are taken")
+
+
+def lock_dir(root: str | Path) -> Slot:
+    """The whole checkpoint directory ``root``, locked for one mapper (``root/lock``, released
+    with the process); RuntimeError naming the fix when another process holds it."""
+    root = Path(root)
+    root.mkdir(parents=True, exist_ok=True)
+    fd = os.open(root / "lock", os.O_RDWR | os.O_CREAT, 0o644)
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except OSError:
+        os.close(fd)
+        raise RuntimeError(
+            f"another mapper holds the checkpoint directory {root}: two mappers must not write one checkpoint "
+            "and journal. Give each its own --checkpoint-dir, or run them as shards with a slot each "
+            "(cluster.enabled and cluster.slots; in docker compose: AISDF_MAPPER_SHARDS=true)") from None
+    return Slot(root, 0, fd)

@@ -75,6 +75,7 @@ def test_one_network_service_publishes_and_checkpoints_its_measured_points(tmp_p
                                                      f["T_WC"]).to_msg()))
     node._add_pending()
     own.add(f["depth"], f["K"], f["T_WC"])
+    node.dir_lock.release()  # its process gone
     again = MapperNode(cfg, session=_Puts())
     assert again.pipeline.n_keyframes == 4
     np.testing.assert_array_equal(again.pipeline.measured_points(), own.points().astype(np.float32))

@@ -44,6 +44,7 @@ def test_parked_keyframes_are_all_acknowledged_and_few_stored(tmp_path):
     assert node.acks == [("cam", [30], [])] and node.counts["duplicates"] == 1
     assert node.info()["stats"]["redundant"] == 60 - info["keyframes"]
     node.save_checkpoint()
+    node.dir_lock.release()  # its process gone
     again = _Acks(cfg, session=None)  # resumed: still seen, still not stored
     assert all(again.is_seen("cam", i) for i in range(60)) and again.pipeline.n_keyframes == info["keyframes"]
 

@@ -149,7 +149,8 @@ def test_dedup_and_versions_survive_a_crash(tmp_path):
     maps = [m for k, m in node.session.puts if k.endswith("map/index")]  # one per publication
     assert [m["epoch"] for m in maps] == [epoch1] * 4 and [m["version"] for m in maps] == [1, 2, 3, 4]
     assert (tmp_path / JOURNAL_NAME).stat().st_size > 0
-    del node  # killed: no checkpoint written after the journal
+    node.dir_lock.release()  # killed (its lock on the directory goes with the process):
+    del node  # no checkpoint written after the journal
 
     again = node_in(tmp_path)  # checkpoint (0..2) + journal (3)
     assert again.pipeline.n_keyframes == 4 and again.seen == {("depth", i) for i in range(4)}
@@ -166,6 +167,7 @@ def test_dedup_and_versions_survive_a_crash(tmp_path):
     again.journal.close()
     with open(tmp_path / JOURNAL_NAME, "ab") as f:
         f.write(b"\xff\xff\x00\x00partial")
+    again.dir_lock.release()
     third = node_in(tmp_path)
     assert third.pipeline.n_keyframes == 5 and third.epoch > again.epoch
 
