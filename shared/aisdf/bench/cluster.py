@@ -17,12 +17,15 @@ one that has published the most submaps, at least ``--kill-after``, killed): sec
 by a survivor, acknowledged keyframes lost, the error at +``--settle`` s; then ``c4`` starts and
 the seconds until it publishes a submap of its own. On a 2-core machine 3 mappers share the
 cores with the query service and the front ends: each trains fewer steps than one alone.
+``--threads auto`` (the default) gives each mapper process ``cores // mappers`` torch threads
+(at least 1), as co-located shards should be configured (``torch_threads``).
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import os
 import threading
 import time
 from pathlib import Path
@@ -67,8 +70,10 @@ def served_error(opts, ns: str, pts: np.ndarray, gt: np.ndarray) -> float | None
 
 def run_one(n: int, args, pts, gt, kill: bool = False, join: bool = False, log_dir: Path | None = None) -> dict:
     ns = f"{NS}/{n}{'k' if kill else ''}"
+    threads = mapper_threads(args.threads, n)
     mapper = ["--preset", "cpu", "--cluster", "--set", f"training.network.width={args.width}", "--set",
-              f"cluster.region_cells={args.region_cells}", "--set", "log_level=INFO"]
+              f"cluster.region_cells={args.region_cells}", "--set", "log_level=INFO",
+              *(["--set", f"torch_threads={threads}"] if threads else [])]
     names = ["mapper"] + [f"mapper{i}" for i in range(2, n + 1 + int(join))]
     ids = {name: f"c{i + 1}" for i, name in enumerate(names)}
     half = args.frames // 2
@@ -87,7 +92,7 @@ def run_one(n: int, args, pts, gt, kill: bool = False, join: bool = False, log_d
         with lock:
             pubs.append((time.monotonic(), m["submap"]["id"], m["submap"].get("mapper", "")))
 
-    out: dict = {"mappers": n, "kill": kill}
+    out: dict = {"mappers": n, "kill": kill, "torch_threads": threads}
     try:
         st.start(only=["query", *names[:n]])
         with transport.open_session(st.client_zenoh) as s:
@@ -154,6 +159,16 @@ def run_one(n: int, args, pts, gt, kill: bool = False, join: bool = False, log_d
     return out
 
 
+def mapper_threads(spec: str, n: int) -> int | None:
+    """torch threads per mapper process: ``auto`` splits this machine's cores between the ``n``
+    mappers (at least 1 each), ``default`` leaves torch's default (every core, each), a number."""
+    if spec == "default":
+        return None
+    if spec == "auto":
+        return max(1, (os.cpu_count() or 1) // n)
+    return int(spec)
+
+
 def _cm(x):
     return None if x is None else round(100 * x, 2)
 
@@ -168,6 +183,8 @@ def main(argv: list[str] | None = None) -> dict:
     p.add_argument("--kill-after", type=int, default=2, help="submaps the killed mapper has published at least")
     p.add_argument("--runs", default="1,2,3,kill", help="comma-separated: 1, 2, 3 mappers, kill (3 with one killed, "
                    "then a fourth joins)")
+    p.add_argument("--threads", default="auto", help="torch threads per mapper: auto (the cores split between "
+                   "the mappers: co-located shards should not each take every core), default (torch's), or N")
     p.add_argument("--out", default="runs/bench-cluster", help="results (cluster.json) and the services' logs")
     a = p.parse_args(argv)
     from ..metrics import eval_points
@@ -196,7 +213,8 @@ def report(runs: list[dict]) -> str:
              "---|---|---|---|---"]
     for r in runs:
         per = "; ".join(f"{k} {v['steps']}, {v['owned_submaps']}" for k, v in r.get("per_mapper", {}).items())
-        name = f"{r['mappers']}" + (" (one killed)" if r["kill"] else "")
+        name = f"{r['mappers']}" + (" (one killed)" if r["kill"] else "") + \
+            (f", {r['torch_threads']} thread{'s' * (r['torch_threads'] != 1)} each" if r.get("torch_threads") else "")
         lines.append(f"{name} | {r.get('walk_s')} | {r.get('error_end_cm')} / {r.get('error_settled_cm')} | "
                      f"{r.get('acked')} / {r.get('in_map')} ({r.get('lost')}) | {per}")
     for r in runs:
