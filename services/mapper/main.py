@@ -29,6 +29,10 @@ Zenoh wiring of an :class:`aisdf.mapper.Mapper` (``mapper: submaps`` or ``single
   loop closure). Checked in the Zenoh callback (a malformed request changes nothing), applied
   by the training loop between two steps (``aisdf.mapper.repose``), published and (with a
   checkpoint directory) checkpointed; then the request is answered with what was done.
+
+The control requests live in ``control.py``, the checkpoint, journal and incarnation in
+``persist.py``, the shard's part in ``shard.py`` and the checkpoint directory's lock (one
+writer per directory, or a slot each) in ``slots.py``.
 """
 
 from __future__ import annotations
@@ -47,21 +51,19 @@ import zenoh
 from aisdf import keys, mapfiles, protocol, transport
 from aisdf.config import add_common_args, config_from_args, service_setup
 from aisdf.mapper import Mapper
-from aisdf.mapper.factory import make_mapper, restore_mapper
+from aisdf.mapper.factory import make_mapper
 
 from .config import MapperConfig
+from .control import POSES_WAIT_S, ControlMixin  # noqa: F401 (POSES_WAIT_S: its old home)
 from .journal import Incarnation, KeyframeJournal
+from .persist import CHECKPOINT_NAME, INCARNATION_NAME, JOURNAL_NAME, CheckpointMixin  # noqa: F401
 from .shard import Shard
 
 log = logging.getLogger("aisdf.mapper")
 INFO_KEY = "info/mapper"
-CHECKPOINT_NAME = "mapper-checkpoint.pt"
-JOURNAL_NAME = "mapper-journal.bin"
-POSES_WAIT_S = 60.0  # a pose correction not applied by then is answered busy
-INCARNATION_NAME = "mapper-incarnation.json"
 
 
-class MapperNode:
+class MapperNode(CheckpointMixin, ControlMixin):
     def __init__(self, cfg: MapperConfig, session, pipeline: Mapper | None = None):
         self.slot = None  # 1.14: this mapper's slot of a shared checkpoint volume (slots.py)
         if cfg.cluster.enabled and cfg.cluster.slots and cfg.checkpoint_dir:
@@ -108,76 +110,6 @@ class MapperNode:
             if getattr(self.pipeline, "kind", None) != "submaps":
                 raise SystemExit("aisdf-mapper: cluster.enabled needs the submap mapper (mapper: submaps)")
             self.shard = Shard(self, cfg.cluster)
-
-    # ------------------------------------------------------------------ checkpoints
-
-    def _ckpt_path(self) -> Path | None:
-        return Path(self.cfg.checkpoint_dir) / CHECKPOINT_NAME if self.cfg.checkpoint_dir else None
-
-    def _restore(self) -> None:
-        """Resume: the checkpoint, then the keyframes journaled after it; a fresh epoch."""
-        path = self._ckpt_path()
-        last_epoch = 0
-        if path is not None and path.exists():
-            ck = torch.load(path, map_location="cpu", weights_only=False)
-            self.pipeline = restore_mapper(ck["pipeline"])
-            self.version = int(ck["version"])
-            last_epoch = int(ck.get("epoch", 0))
-            if "seen" in ck:
-                self.seen = {(str(s), int(i)) for s, i in ck["seen"]}
-            else:
-                self._seen_ids = {int(i) for _, i in self.pipeline.keyframe_keys()}
-            log.info("resumed from %s: version %d, %d steps, %d keyframes", path, self.version, self.pipeline.steps,
-                     self.pipeline.n_keyframes)
-        if self.incarnation is not None:
-            last = self.incarnation.load()
-            last_epoch = max(last_epoch, last["epoch"])
-            self.version = max(self.version, last["version"])
-        self.epoch = max(int(time.time() * 1000), last_epoch + 1)
-        if self.incarnation is not None:
-            self.incarnation.save(self.epoch, self.version)
-        self._replay_journal()
-        log.info("epoch %d, next map version %d", self.epoch, self.version + 1)
-
-    def _replay_journal(self) -> None:
-        if self.journal is None:
-            return
-        n = 0
-        for payload in self.journal.read():
-            try:
-                kf = protocol.Keyframe.from_msg(protocol.unpack(payload))
-            except protocol.ProtocolError as e:
-                log.warning("journal: skipping an unreadable keyframe: %s", e.message)
-                continue
-            if self.is_seen(kf.sensor, kf.frame_id):
-                continue
-            try:
-                self.pipeline.add_keyframe(kf)
-            except ValueError as e:
-                log.warning("journal: keyframe %d not added again: %s", kf.frame_id, e)
-                continue
-            self.seen.add((kf.sensor, kf.frame_id))
-            n += 1
-        if n:
-            log.info("replayed %d keyframes from the journal %s", n, self.journal.path)
-
-    def is_seen(self, sensor: str, frame_id: int) -> bool:
-        return (sensor, frame_id) in self.seen or frame_id in self._seen_ids
-
-    def checkpoint(self) -> dict:
-        return {"pipeline": self.pipeline.checkpoint(), "version": self.version, "epoch": self.epoch,
-                "seen": sorted(self.seen)}
-
-    def save_checkpoint(self) -> None:
-        path = self._ckpt_path()
-        if path is None:
-            return
-        path.parent.mkdir(parents=True, exist_ok=True)
-        tmp = path.with_suffix(".tmp")
-        torch.save(self.checkpoint(), tmp)
-        tmp.replace(path)
-        if self.journal is not None:
-            self.journal.clear()  # the checkpoint holds its keyframes now
 
     # ------------------------------------------------------------------ keyframes in
 
@@ -330,83 +262,6 @@ class MapperNode:
                     last_pub = time.monotonic()
             if pause:
                 self._stop.wait(pause)
-
-    # ------------------------------------------------------------------ pose corrections
-
-    def on_poses(self, req: dict) -> dict:
-        """``control/mapper/poses`` (protocol 1.11): checked here (ProtocolError: nothing
-        changes), applied by the training loop (``_apply_poses``), answered once published."""
-        corr = protocol.PoseCorrections.from_msg(req)
-        job = {"corr": corr, "done": threading.Event(), "reply": None, "error": None}
-        self._pose_jobs.append(job)
-        if not job["done"].wait(POSES_WAIT_S):
-            raise protocol.ProtocolError("busy", f"the corrections were not applied within {POSES_WAIT_S:.0f} s; "
-                                                 "they may still be: send them again (a pose already held is "
-                                                 "counted unchanged)")
-        if job["error"] is not None:
-            raise job["error"]
-        return job["reply"]
-
-    def _apply_poses(self) -> None:
-        """Every waiting correction batch, between two training steps: the map re-posed, then
-        published (and checkpointed: the journal's keyframes carry the old poses)."""
-        moved = 0
-        jobs = []
-        while self._pose_jobs:
-            job = self._pose_jobs.popleft()
-            jobs.append(job)
-            corr: protocol.PoseCorrections = job["corr"]
-            t = time.perf_counter()
-            try:
-                res = self.pipeline.repose({(corr.sensor, i): T for i, T in corr.as_dict().items()})
-            except ValueError as e:  # checked on arrival: not expected
-                job["error"] = protocol.ProtocolError("bad_request", str(e))
-                continue
-            moved += res["reposed"]
-            for sid in res.get("removed", []):  # gone from the map: no longer answered on get
-                self._latest.pop(f"{keys.MAP_SUBMAPS}/{sid}", None)
-            self.counts["reposed"] = self.counts.get("reposed", 0) + res["reposed"]
-            self.counts["pose_batches"] = self.counts.get("pose_batches", 0) + 1
-            log.info("pose corrections from %s: %d keyframes re-posed, %d unknown, %d unchanged, %d submaps "
-                     "retrained, %d removed; ms: %s", corr.sensor, res["reposed"], len(res["unknown"]),
-                     res["unchanged"], len(res["submaps"]), len(res.get("removed", [])),
-                     " ".join(f"{k} {v:.0f}" for k, v in res["timings_ms"].items()))
-            job["reply"] = protocol.PosesApplied(
-                corr.sensor, res["reposed"], [int(i) for _, i in res["unknown"]], res["unchanged"],
-                len(res["submaps"]), 0, self.epoch, time.perf_counter() - t)
-        if moved and self.pipeline.n_keyframes:
-            self._publish()
-            self.save_checkpoint()
-        for job in jobs:
-            if job["reply"] is not None:
-                job["reply"].version = self.version
-                job["reply"] = job["reply"].to_msg()
-            job["done"].set()
-
-    # ------------------------------------------------------------------ map files
-
-    def on_save(self, _req: dict) -> dict:
-        """``control/mapper/save``: the map as a map file (``aisdf.mapfiles``)."""
-        with self.train_lock:
-            if not self.pipeline.n_keyframes:
-                raise protocol.ProtocolError("no_map", "the mapper has no keyframes yet")
-            return mapfiles.save_reply(self.checkpoint(), self.pipeline)
-
-    def on_load(self, req: dict) -> dict:
-        """``control/mapper/load``: checked and restored first (a bad one changes nothing), swapped in
-        between training steps in a new epoch (versions go on above ours), checkpointed, published."""
-        new = mapfiles.read_load_request(req)
-        with self.train_lock:
-            with self.lock:
-                self.pipeline, self.seen, self._seen_ids = new.pipeline, new.seen, set()
-                self.epoch = max(int(time.time() * 1000), self.epoch + 1)
-                self.version = max(self.version, new.version)
-                self._latest.clear()
-                self._published_all = False
-            self.save_checkpoint()  # the journal's keyframes were the old map's
-            self._publish()  # saves the new epoch as this incarnation's
-            log.info("loaded a map of %d keyframes in epoch %d", new.pipeline.n_keyframes, self.epoch)
-            return mapfiles.load_reply(self.pipeline, self.version, self.epoch)
 
     # ------------------------------------------------------------------ queries
 
