@@ -1,6 +1,7 @@
 """``aisdf bench cluster``: the built-in floor walked by two robots into 1, 2 and 3 mapper
-shards (protocol 1.14) and one query service, real processes over Zenoh on loopback, on this
-machine; then 3 shards with one killed with SIGKILL mid-walk, and a fourth joining.
+shards (protocol 1.14) and one query service (``--replicas 2``: two, protocol 1.12), real
+processes over Zenoh on loopback, on this machine; then 3 shards with one killed with SIGKILL
+mid-walk, and a fourth joining.
 
 Each run starts the query service and the mappers (``--cluster``, ids ``c1`` .. ``cN``),
 waits until every mapper sees all members, then two front ends walk the floor's ``--frames``
@@ -79,7 +80,8 @@ def run_one(n: int, args, pts, gt, kill: bool = False, join: bool = False, log_d
     half = args.frames // 2
     front = ["--set", "building=floor", "--set", f"n_frames={args.frames}", "--set", f"fps={args.fps}",
              "--set", "width=80", "--set", "height=60", "--set", "linger=true", "--set", "hold_max=2000"]
-    st = Stack(services=["query", *names, "frontend", "frontend2"], namespace=ns,
+    queries = ["query"] + [f"query{i}" for i in range(2, args.replicas + 1)]
+    st = Stack(services=[*queries, *names, "frontend", "frontend2"], namespace=ns,
                args={**{k: mapper + ["--mapper-id", v] for k, v in ids.items()},
                      "frontend": front + ["--set", "sensor=robot1", "--set", f"max_frames={half}"],
                      "frontend2": front + ["--set", "sensor=robot2", "--set", f"start={half}"]},
@@ -92,9 +94,9 @@ def run_one(n: int, args, pts, gt, kill: bool = False, join: bool = False, log_d
         with lock:
             pubs.append((time.monotonic(), m["submap"]["id"], m["submap"].get("mapper", "")))
 
-    out: dict = {"mappers": n, "kill": kill, "torch_threads": threads}
+    out: dict = {"mappers": n, "kill": kill, "torch_threads": threads, "query_replicas": args.replicas}
     try:
-        st.start(only=["query", *names[:n]])
+        st.start(only=[*queries, *names[:n]])
         with transport.open_session(st.client_zenoh) as s:
             sub = s.declare_subscriber(keys.key(ns, keys.MAP_SUBMAPS) + "/*", on_submap)
             wait_for(lambda: (lambda i: len(i) == n and all(len(v["cluster"]["members"]) == n for v in i.values()))(
@@ -183,6 +185,8 @@ def main(argv: list[str] | None = None) -> dict:
     p.add_argument("--kill-after", type=int, default=2, help="submaps the killed mapper has published at least")
     p.add_argument("--runs", default="1,2,3,kill", help="comma-separated: 1, 2, 3 mappers, kill (3 with one killed, "
                    "then a fourth joins)")
+    p.add_argument("--replicas", type=int, default=1, choices=(1, 2), help="query services (replicas, protocol 1.12) "
+                   "answering the planner's error queries (default 1)")
     p.add_argument("--threads", default="auto", help="torch threads per mapper: auto (the cores split between "
                    "the mappers: co-located shards should not each take every core), default (torch's), or N")
     p.add_argument("--out", default="runs/bench-cluster", help="results (cluster.json) and the services' logs")
@@ -214,7 +218,8 @@ def report(runs: list[dict]) -> str:
     for r in runs:
         per = "; ".join(f"{k} {v['steps']}, {v['owned_submaps']}" for k, v in r.get("per_mapper", {}).items())
         name = f"{r['mappers']}" + (" (one killed)" if r["kill"] else "") + \
-            (f", {r['torch_threads']} thread{'s' * (r['torch_threads'] != 1)} each" if r.get("torch_threads") else "")
+            (f", {r['torch_threads']} thread{'s' * (r['torch_threads'] != 1)} each" if r.get("torch_threads") else "") + \
+            (f", {r['query_replicas']} query replicas" if r.get("query_replicas", 1) > 1 else "")
         lines.append(f"{name} | {r.get('walk_s')} | {r.get('error_end_cm')} / {r.get('error_settled_cm')} | "
                      f"{r.get('acked')} / {r.get('in_map')} ({r.get('lost')}) | {per}")
     for r in runs:
