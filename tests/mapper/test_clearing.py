@@ -54,6 +54,19 @@ def test_a_depth_edge_does_not_clear_the_nearer_surface_beside_it():
     assert ev.passed(np.array([[(100 - 80) / 100 * 2.0, 0.0, 2.0]]))[0]
 
 
+def test_a_window_in_degrees_covers_a_pose_s_angular_error_at_a_depth_edge():
+    d = _wall(4.0)
+    d[:, :80] = 1.0  # a near surface on the left half
+    # a point of the near surface seen from a pose 1.1 degrees off: it lands 2 pixels past the edge
+    p = np.array([[(82 - 80) / 100 * 1.0, 0.0, 1.0]])
+    assert clearing.window_radius(W, K) == 1 and clearing.window_radius(W, K, 2.0) == 4  # tan(2 deg) x 100 px
+    assert clearing.window_radius(640, np.diag([585.0, 585.0, 1.0]), 0.5) == 6
+    assert clearing.FreeSpace(d, K, np.eye(4)).passed(p)[0]  # the pixel window: cleared
+    assert not clearing.FreeSpace(d, K, np.eye(4), window_deg=2.0).passed(p)[0]
+    # a point well clear of the edge is still passed through
+    assert clearing.FreeSpace(d, K, np.eye(4), window_deg=2.0).passed(np.array([[(100 - 80) / 100 * 2.0, 0, 2.0]]))[0]
+
+
 def _person_then_table(band: bool = True):
     """A person (rows 40-57, 1.6 m) in front of a wall (3 m), then the same view without
     them: a table top's edge at row 60 (2 m below it), and, as depth cameras do, a band of

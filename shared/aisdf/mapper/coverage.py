@@ -57,6 +57,10 @@ class KeyframePolicy(Model):
     clear_margin_m: float = Field(0.05, ge=0, description="... beyond the measured surface minus this margin ...")
     clear_sigmas: float = Field(3.0, ge=0, description="... and this many depth-noise standard deviations "
                                 "(Kinect v1, Nguyen et al.: grows with the square of the range)")
+    clear_window_deg: float | None = Field(None, ge=0, le=10, description="the depth a point is tested against "
+                                           "is the minimum over a window this many degrees each side of its pixel "
+                                           "(the pose's angular error: 0.5 for a SLAM system's poses on real depth); "
+                                           "None: 2 pixels each side from 320 wide, 1 below")
     max_keyframes_total: int = Field(2000, ge=4, description="keyframes the submap mapper stores over the whole "
                                      "map; beyond, the one best covered by the others is evicted (what the map "
                                      "learnt from it stays)")

@@ -130,7 +130,8 @@ class KeyframeIntake:
         """``clearing``'s three retirements for one new keyframe; True when they are news
         (``clearing.NEWS_VOXELS``: the keyframe is then not redundant)."""
         p = self.policy
-        ev = clearing.FreeSpace(frame.depth, frame.K, frame.T_WC, self.max_depth, p.clear_margin_m, p.clear_sigmas)
+        ev = clearing.FreeSpace(frame.depth, frame.K, frame.T_WC, self.max_depth, p.clear_margin_m, p.clear_sigmas,
+                                window_deg=getattr(p, "clear_window_deg", None))
         keys, self.cleared_points, solid = clearing.clear_measured(self.measured, ev)
         n_meas = len(keys)
         if stored is not None and (n_meas or self.measured is None):
