@@ -49,7 +49,8 @@ stored pixels, and the whole intake takes a third of the time (142 s against 436
 250 frames, fewer keyframes stored as news). What is left is not the window:
 some frame pairs disagree by more than a degree. The default stays the pixel window, whose
 figures on exact poses (the changing scenes) are measured; on estimated poses set 0.5, or
-turn clearing off where the scene is known to be static.
+turn clearing off where the scene is known to be static
+(docs/experiments/clearing-real-data.md).
 
 Keyframes tested against the new one: those whose coverage voxels (``coverage``, the 10 cm
 voxels of their sampled pixels) include or neighbour a measured voxel the new keyframe
