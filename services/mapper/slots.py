@@ -41,20 +41,27 @@ class Slot:
         self.release()
 
 
+def _try_lock(d: Path) -> int | None:
+    """``d/lock`` (``d`` created when needed) held with an exclusive flock: its descriptor, or
+    None when another process holds it."""
+    d.mkdir(parents=True, exist_ok=True)
+    fd = os.open(d / "lock", os.O_RDWR | os.O_CREAT, 0o644)
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except OSError:
+        os.close(fd)
+        return None
+    return fd
+
+
 def claim(root: str | Path, max_slots: int = MAX_SLOTS) -> Slot:
     """The lowest free slot under ``root`` (created when needed), locked; RuntimeError when all
     ``max_slots`` are taken."""
     root = Path(root)
     for n in range(1, max_slots + 1):
-        d = root / f"slot-{n}"
-        d.mkdir(parents=True, exist_ok=True)
-        fd = os.open(d / "lock", os.O_RDWR | os.O_CREAT, 0o644)
-        try:
-            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except OSError:
-            os.close(fd)
-            continue
-        return Slot(root, n, fd)
+        fd = _try_lock(root / f"slot-{n}")
+        if fd is not None:
+            return Slot(root, n, fd)
     raise RuntimeError(f"all {max_slots} mapper slots under {root} are taken")
 
 
@@ -62,14 +69,10 @@ def lock_dir(root: str | Path) -> Slot:
     """The whole checkpoint directory ``root``, locked for one mapper (``root/lock``, released
     with the process); RuntimeError naming the fix when another process holds it."""
     root = Path(root)
-    root.mkdir(parents=True, exist_ok=True)
-    fd = os.open(root / "lock", os.O_RDWR | os.O_CREAT, 0o644)
-    try:
-        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-    except OSError:
-        os.close(fd)
+    fd = _try_lock(root)
+    if fd is None:
         raise RuntimeError(
             f"another mapper holds the checkpoint directory {root}: two mappers must not write one checkpoint "
             "and journal. Give each its own --checkpoint-dir, or run them as shards with a slot each "
-            "(cluster.enabled and cluster.slots; in docker compose: AISDF_MAPPER_SHARDS=true)") from None
+            "(cluster.enabled and cluster.slots; in docker compose: AISDF_MAPPER_SHARDS=true)")
     return Slot(root, 0, fd)
