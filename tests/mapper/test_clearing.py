@@ -95,14 +95,47 @@ def test_a_window_with_the_hole_band_of_a_depth_edge_clears_the_measured_points_
     m.add(before, K, np.eye(4))
     person = lambda P: np.abs(P[:, 2] - 1.6) < 0.05  # noqa: E731
     assert person(_measured_points(m)).sum() >= 8
-    keys, pts, solid = clearing.clear_measured(m, clearing.FreeSpace(after, K, np.eye(4)))
+    keys, pts, solid = clearing.clear_measured(m, clearing.FreeSpace(after, K, np.eye(4)), passes=1)
     assert person(pts).all() and person(_measured_points(m)).sum() == 0  # every person voxel, nothing else
     # without the band every window is whole: the same voxels go, and all of them are news
     m2 = MeasuredSurface(min_hits=1)
     m2.add(before, K, np.eye(4))
-    keys2, _, solid2 = clearing.clear_measured(m2, clearing.FreeSpace(_person_then_table(band=False)[1], K, np.eye(4)))
+    keys2, _, solid2 = clearing.clear_measured(m2, clearing.FreeSpace(_person_then_table(band=False)[1], K, np.eye(4)),
+                                               passes=1)
     assert keys2.tolist() == keys.tolist() and solid2 == len(keys2)
     assert solid < solid2  # the voxels only a window with holes passes are not news
+
+
+def test_a_measured_point_goes_after_two_keyframes_in_a_row_pass_through_it_and_one_that_sees_it_resets_the_count():
+    from aisdf.structure.measured import MeasuredSurface
+    before, after = _person_then_table(band=False)
+    m = MeasuredSurface(min_hits=1)
+    m.add(before, K, np.eye(4))
+    n = len(m)
+    person = lambda P: np.abs(P[:, 2] - 1.6) < 0.05  # noqa: E731
+    n_person = int(person(_measured_points(m)).sum())
+    gone_ev, seen_ev = clearing.FreeSpace(after, K, np.eye(4)), clearing.FreeSpace(before, K, np.eye(4))
+    # one view through the person's place: counted, nothing removed
+    keys, _, solid = clearing.clear_measured(m, gone_ev)
+    assert len(keys) == 0 and solid == 0 and len(m) == n
+    assert int((m.misses == 1).sum()) == n_person and int(m.misses.max()) == 1
+    # a view that measures the person again resets the count; the wall behind it is not touched
+    clearing.clear_measured(m, seen_ev)
+    assert int(m.misses.max()) == 0
+    clearing.clear_measured(m, gone_ev)
+    assert len(m) == n  # one miss again, not two
+    keys, pts, solid = clearing.clear_measured(m, gone_ev)  # the second in a row
+    assert person(pts).all() and len(pts) == n_person and solid == n_person
+    assert len(m) == n - n_person and int(m.misses.max()) == 0
+    # the count lives in the checkpoint; an older one without it starts at 0
+    m.add(before, K, np.eye(4))
+    clearing.clear_measured(m, gone_ev)
+    st = m.state_dict()
+    assert MeasuredSurface.from_state_dict(st).misses.tolist() == m.misses.tolist() and m.misses.max() == 1
+    del st["misses"]
+    assert MeasuredSurface.from_state_dict(st).misses.max() == 0
+    with pytest.raises(ValueError):
+        MeasuredSurface.from_state_dict({**m.state_dict(), "misses": m.misses[:-1]})
 
 
 def _cart_scenes(seed: int = 0):
@@ -197,9 +230,12 @@ def test_a_keyframe_at_a_stored_pose_that_clears_something_is_stored_not_redunda
     # the same pose, the cart still there: redundant
     assert not mapper.add_keyframe(Frame(2, 1.0, render_depth(cart, T, seq.K, H, W, seq.noise, (0, 2)), seq.K.copy(),
                                          T.copy()))
-    # the same pose, the cart gone: news
-    assert mapper.add_keyframe(Frame(3, 2.0, render_depth(sc, T, seq.K, H, W, seq.noise, (0, 3)), seq.K.copy(),
-                                     T.copy()))
+    # the same pose, the cart gone: the first view counts a miss (and is stored for the wall it
+    # sees behind the cart); the second, at the pose of that stored one, clears the cart: news
+    gone = [Frame(k, k - 1.0, render_depth(sc, T, seq.K, H, W, seq.noise, (0, k)), seq.K.copy(), T.copy())
+            for k in (3, 4)]
+    assert mapper.add_keyframe(gone[0]) and mapper.intake.cleared["measured"] == 0
+    assert mapper.add_keyframe(gone[1])
     assert mapper.intake.cleared["measured"] > 0
 
 
@@ -210,8 +246,9 @@ def test_a_submap_whose_measured_points_were_cleared_is_published_again_without_
     mapper.map_messages(1)  # everything published once
     assert [k for k, _ in mapper.map_messages(2) if k.startswith("map/submaps/")] == []
     T = seq.poses[300]
-    mapper.add_keyframe(Frame(5000, 50.0, render_depth(sc, T, seq.K, H, W, seq.noise, (0, 5000)), seq.K.copy(),
-                              T.copy()))
+    for k in (5000, 5001):  # two views in a row through the cart's place
+        mapper.add_keyframe(Frame(k, k / 100, render_depth(sc, T, seq.K, H, W, seq.noise, (0, k)), seq.K.copy(),
+                                  T.copy()))
     assert mapper.intake.cleared["measured"] > 0
     out = [k for k, _ in mapper.map_messages(3) if k.startswith("map/submaps/")]
     assert out, "the submaps holding the cleared points were not published"

@@ -6,7 +6,8 @@ measured voxels' distance to it.
     python docs/experiments/clearing-real-data/real_clear.py $AISDF_DATA/replica-office0-nvblox 10 2000
 
 argv: dataset folder, every k-th frame, frames; a fourth ``strict`` turns the measured points'
-window with holes off. Environment: MARGIN (clear_margin_m, 0.05), WDEG (clear_window_deg)."""
+window with holes off. Environment: MARGIN (clear_margin_m, 0.05), WDEG (clear_window_deg),
+PASSES (clear_passes, 2)."""
 import sys, time, numpy as np
 from aisdf.datasets import open_dataset
 from aisdf.submaps.pipeline import SubmapPipeline
@@ -17,13 +18,13 @@ if len(sys.argv) > 4 and sys.argv[4] == "strict":
     clearing.HOLE_WINDOW_VALID = 2.0
 rec = []
 orig = clearing.clear_measured
-def spy(m, ev):
+def spy(m, ev, *a):
     cnt = None
     if m is not None and len(m):
-        pts = m.sums / m.counts[:, None]
-        g = ev.passed(pts, holes=True) if clearing.HOLE_WINDOW_VALID <= 1 else ev.passed(pts)
-        cnt = m.counts[g]
-    k, p, solid = orig(m, ev)
+        cnt = m.counts.copy(), m.keys.copy()
+    k, p, solid = orig(m, ev, *a)
+    if cnt is not None:
+        cnt = cnt[0][np.isin(cnt[1], k)]
     if len(p):
         rec.append((p, cnt))
     return k, p, solid
@@ -31,7 +32,7 @@ clearing.clear_measured = spy
 ds = open_dataset("7scenes" if "7scenes" in path else None, path)
 print(ds.name, len(ds), ds.W, ds.H, sys.argv[4:] or "holes")
 import os
-pipe = SubmapPipeline.from_settings("cpu", keyframes={"clear_margin_m": float(os.environ.get("MARGIN", "0.05")), "clear_window_deg": float(os.environ["WDEG"]) if os.environ.get("WDEG") else None})
+pipe = SubmapPipeline.from_settings("cpu", keyframes={"clear_margin_m": float(os.environ.get("MARGIN", "0.05")), "clear_window_deg": float(os.environ["WDEG"]) if os.environ.get("WDEG") else None, "clear_passes": int(os.environ.get("PASSES", "2"))})
 t0 = time.time(); stored = 0
 for i in range(0, min(len(ds), n), every):
     f = ds.frame(i)

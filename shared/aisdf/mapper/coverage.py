@@ -61,6 +61,9 @@ class KeyframePolicy(Model):
                                            "is the minimum over a window this many degrees each side of its pixel "
                                            "(the pose's angular error: 0.5 for a SLAM system's poses on real depth); "
                                            "None: 2 pixels each side from 320 wide, 1 below")
+    clear_passes: int = Field(2, ge=1, le=255, description="a measured point goes when this many newer "
+                              "keyframes in a row pass through it, none measuring a surface there (1: the "
+                              "first one; more keeps a surface that a pose's error makes one view miss)")
     max_keyframes_total: int = Field(2000, ge=4, description="keyframes the submap mapper stores over the whole "
                                      "map; beyond, the one best covered by the others is evicted (what the map "
                                      "learnt from it stays)")

@@ -242,7 +242,8 @@ def rebuild_measured(m: MeasuredSurface, frames: list, moved: dict[Key, np.ndarr
     return MeasuredSurface.from_state_dict({
         "voxel": m.voxel, "min_hits": m.min_hits, "max_depth": m.max_depth, "keys": keys[order],
         "sums": np.concatenate([m.sums[stay], out.sums])[order],
-        "counts": np.concatenate([m.counts[stay], out.counts])[order]})
+        "counts": np.concatenate([m.counts[stay], out.counts])[order],
+        "misses": np.concatenate([m.misses[stay], out.misses])[order]})
 
 
 def _surfel_boxes(S: Surfels, grow: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
