@@ -57,3 +57,16 @@ except Exception as e:
 if o is not None:
     o = np.asarray(o, bool)
     print("q cells observed (free or surface):", o.mean().round(3), "; on plane & not predicted & observed:", np.mean(o[onplane & (dq >= 0.05)]).round(3))
+from aisdf.bench.evaluation import measured_depth_points
+kf_ids = {int(k.frame.frame_id) if hasattr(k, "frame") else int(k.frame_id) for k in pipe.keyframes}
+for label, fr in (("all frames", frames), ("keyframes only", [frames[i] for i in sorted(kf_ids)])):
+    M = measured_depth_points(fr, scene.max_depth)
+    Mn = np.asarray(scene.gt_grad(M), np.float64); Mn /= np.maximum(np.linalg.norm(Mn, axis=1, keepdims=True), 1e-9)
+    seen = np.zeros(len(q), bool); cnt = np.zeros(len(q), int)
+    key = np.round(np.c_[np.abs(n) * 20, np.abs(np.einsum("ij,ij->i", n, q)) / 0.02]).astype(int)
+    planes_, inv = np.unique(key, axis=0, return_inverse=True); inv = inv.ravel()
+    for k in range(len(planes_)):
+        i = np.flatnonzero(inv == k)[0]; nn, off = n[i], n[i] @ q[i]
+        c = int((np.abs(Mn[np.abs(M @ nn - off) < 0.02] @ nn) > 0.95).sum())
+        cnt[inv == k] = c
+    print(f"{label}: nearest surface on a plane with >= 50 depth points: {np.mean(cnt >= 50):.3f}; of those not on a surfel plane: {np.mean(cnt[~onplane] >= 50):.3f}; median count there {np.median(cnt[~onplane]):.0f}")
