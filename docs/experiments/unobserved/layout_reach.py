@@ -70,3 +70,11 @@ for label, fr in (("all frames", frames), ("keyframes only", [frames[i] for i in
         c = int((np.abs(Mn[np.abs(M @ nn - off) < 0.02] @ nn) > 0.95).sum())
         cnt[inv == k] = c
     print(f"{label}: nearest surface on a plane with >= 50 depth points: {np.mean(cnt >= 50):.3f}; of those not on a surfel plane: {np.mean(cnt[~onplane] >= 50):.3f}; median count there {np.median(cnt[~onplane]):.0f}")
+from aisdf.structure.surfel_types import Surfels
+KS = Surfels.concat([k.surfels for k in pipe.keyframes if getattr(k, "surfels", None) is not None and len(k.surfels)])
+on_k = np.zeros(len(q), bool); on_any = np.zeros(len(q), bool)
+for P_ in L.planes(KS, 0.05):
+    hit = (np.abs(q @ P_.normal - P_.offset) < 0.05) & (np.abs(n @ P_.normal) > 0.95)
+    on_any |= hit
+    if P_.area >= 0.5: on_k |= hit
+print("on a plane of the keyframes' own surfels (before merging): any area", on_any.mean().round(3), "; >= 0.5 m^2", on_k.mean().round(3), "(global map:", onplane.mean().round(3), ")")
