@@ -78,3 +78,4 @@ for P_ in L.planes(KS, 0.05):
     on_any |= hit
     if P_.area >= 0.5: on_k |= hit
 print("on a plane of the keyframes' own surfels (before merging): any area", on_any.mean().round(3), "; >= 0.5 m^2", on_k.mean().round(3), "(global map:", onplane.mean().round(3), ")")
+print("cleared by free space:", pipe.intake.cleared)
