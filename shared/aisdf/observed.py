@@ -41,6 +41,17 @@ def unpack_keys(keys: np.ndarray) -> np.ndarray:
     return np.stack([(keys >> 42) & _MASK, (keys >> 21) & _MASK, keys & _MASK], axis=-1) - _OFF
 
 
+# the 26 offsets to a voxel's neighbours
+NEIGHBOUR_OFFSETS = np.stack(np.meshgrid([-1, 0, 1], [-1, 0, 1], [-1, 0, 1], indexing="ij"), -1).reshape(-1, 3)
+NEIGHBOUR_OFFSETS = NEIGHBOUR_OFFSETS[np.any(NEIGHBOUR_OFFSETS != 0, axis=1)]
+
+
+def neighbourhood(keys: np.ndarray) -> np.ndarray:
+    """The voxel keys and their 26 neighbours (sorted, unique)."""
+    offs = np.concatenate([np.zeros((1, 3), np.int64), NEIGHBOUR_OFFSETS])
+    return np.unique(pack_keys((unpack_keys(keys)[:, None, :] + offs[None]).reshape(-1, 3)))
+
+
 class ObservedSpace:
     """The set of observed voxels, grown one depth image at a time. Each voxel also counts
     the images that marked it, so an image can be taken back out (``remove``: a keyframe

@@ -74,7 +74,7 @@ import numpy as np
 from scipy import ndimage
 
 from .. import geometry
-from ..observed import pack_keys, unpack_keys
+from ..observed import neighbourhood
 
 SURFEL_SAMPLE_M = 0.1  # surfel points tested every this far over the rectangle
 SURFEL_MAX_SAMPLES = 400  # ... at most this many per surfel (a coarser spacing beyond)
@@ -181,18 +181,11 @@ def clear_measured(measured, evidence: FreeSpace, passes: int = CLEAR_PASSES) ->
     return keys, pts, solid
 
 
-def _neighbourhood(keys: np.ndarray) -> np.ndarray:
-    """The voxel keys and their 26 neighbours (sorted, unique)."""
-    ijk = unpack_keys(keys)
-    offs = np.stack(np.meshgrid([-1, 0, 1], [-1, 0, 1], [-1, 0, 1], indexing="ij"), -1).reshape(-1, 3)
-    return np.unique(pack_keys((ijk[:, None, :] + offs[None]).reshape(-1, 3)))
-
-
 def candidate_keyframes(coverage, cleared_keys: np.ndarray) -> list[tuple[str, int]]:
     """Stored keyframes whose coverage voxels meet the cleared voxels or their neighbours."""
     if not len(cleared_keys):
         return []
-    near = _neighbourhood(cleared_keys)
+    near = neighbourhood(cleared_keys)
     return [key for key, (vox, _) in coverage.views.items() if len(vox) and np.isin(vox, near).any()]
 
 

@@ -131,9 +131,8 @@ class KeyframeIntake:
         (``clearing.NEWS_VOXELS``: the keyframe is then not redundant)."""
         p = self.policy
         ev = clearing.FreeSpace(frame.depth, frame.K, frame.T_WC, self.max_depth, p.clear_margin_m, p.clear_sigmas,
-                                window_deg=getattr(p, "clear_window_deg", None))
-        keys, self.cleared_points, solid = clearing.clear_measured(
-            self.measured, ev, getattr(p, "clear_passes", clearing.CLEAR_PASSES))
+                                window_deg=p.clear_window_deg)
+        keys, self.cleared_points, solid = clearing.clear_measured(self.measured, ev, p.clear_passes)
         n_meas = len(keys)
         if stored is not None and (n_meas or self.measured is None):
             cands = (clearing.candidate_keyframes(self.coverage, keys) if self.measured is not None

@@ -31,7 +31,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..geometry import backproject, kdtree, transform, valid_depth
-from ..observed import pack_keys, unpack_keys
+from ..observed import NEIGHBOUR_OFFSETS, neighbourhood, pack_keys, unpack_keys
 
 DEFAULT_VOXEL = 0.1
 DEFAULT_MIN_HITS = 3
@@ -54,7 +54,7 @@ class MeasuredSurface:
         # newer keyframes in a row whose rays passed through the voxel's point (``note_evidence``)
         self.misses = np.zeros(0, np.uint8)
         self._points: MeasuredPoints | None = None
-        self._col: np.ndarray | None = None  # surface_points of every voxel, kept up to date (points())
+        self._voxel_pts: np.ndarray | None = None  # surface_points of every voxel, kept up to date (voxel_points)
         self._dirty: list[np.ndarray] = []  # keys changed since: their neighbourhoods are computed again
         self._msg: dict | None = None
         self.version = 0  # counts changes (points added or removed)
@@ -94,8 +94,8 @@ class MeasuredSurface:
         self.sums = np.insert(self.sums, i[fresh], add_s[fresh], axis=0)
         self.counts = np.insert(self.counts, i[fresh], add_c[fresh])
         self.misses = np.insert(self.misses, i[fresh], 0)
-        if self._col is not None:
-            self._col = np.insert(self._col, i[fresh], np.nan, axis=0)
+        if self._voxel_pts is not None:
+            self._voxel_pts = np.insert(self._voxel_pts, i[fresh], np.nan, axis=0)
             self._dirty.append(new)
         self._points, self._msg = None, None
         self.version += 1
@@ -109,9 +109,9 @@ class MeasuredSurface:
         n = int(gone.sum())
         if n:
             keep = ~gone
-            if self._col is not None:
+            if self._voxel_pts is not None:
                 self._dirty.append(self.keys[gone])
-                self._col = self._col[keep]
+                self._voxel_pts = self._voxel_pts[keep]
             self.keys, self.sums, self.counts = self.keys[keep], self.sums[keep], self.counts[keep]
             self.misses = self.misses[keep]
             self._points, self._msg = None, None
@@ -142,20 +142,16 @@ class MeasuredSurface:
         """(N, 3) ``surface_points`` of every voxel, computed again only around the voxels that
         changed since the last call (a voxel's point depends on its 26 neighbours)."""
         if not len(self.keys):
-            self._col, self._dirty = np.zeros((0, 3)), []
-            return self._col
-        if self._col is None or len(self._col) != len(self.keys):
-            self._col = surface_points(self.keys, self.sums, self.counts, self.voxel)
+            self._voxel_pts, self._dirty = np.zeros((0, 3)), []
+            return self._voxel_pts
+        if self._voxel_pts is None or len(self._voxel_pts) != len(self.keys):
+            self._voxel_pts = surface_points(self.keys, self.sums, self.counts, self.voxel)
         elif self._dirty:
-            changed = np.unique(np.concatenate(self._dirty))
-            near = np.unique(pack_keys((unpack_keys(changed)[:, None, :]
-                                        + np.concatenate([np.zeros((1, 3), np.int64), _neighbour_offsets()])[None]
-                                        ).reshape(-1, 3)))
-            i, hit = _lookup(self.keys, near)
+            i, hit = _lookup(self.keys, neighbourhood(np.unique(np.concatenate(self._dirty))))
             rows = i[hit]
-            self._col[rows] = surface_points(self.keys, self.sums, self.counts, self.voxel, rows=rows)
+            self._voxel_pts[rows] = surface_points(self.keys, self.sums, self.counts, self.voxel, rows=rows)
         self._dirty = []
-        return self._col
+        return self._voxel_pts
 
     def message(self) -> dict:
         """The protocol's ``measured`` map (1.4): {"voxel": float, "points": (M, 3) float32},
@@ -201,11 +197,6 @@ class MeasuredSurface:
         return m
 
 
-def _neighbour_offsets() -> np.ndarray:
-    o = np.stack(np.meshgrid([-1, 0, 1], [-1, 0, 1], [-1, 0, 1], indexing="ij"), -1).reshape(-1, 3)
-    return o[np.any(o != 0, axis=1)]
-
-
 def _lookup(keys: np.ndarray, want: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(index, found) of ``want`` in the sorted ``keys``."""
     i = np.minimum(np.searchsorted(keys, want), len(keys) - 1)
@@ -239,7 +230,7 @@ def surface_points(keys: np.ndarray, sums: np.ndarray, counts: np.ndarray, voxel
     if len(keys) < 3 or not len(rows):
         return own
     ijk = unpack_keys(keys[rows])
-    offs = _neighbour_offsets()
+    offs = NEIGHBOUR_OFFSETS
     # the neighbours' indices (-1: none), then the count-weighted covariance of the 27 means
     nb = np.full((len(offs), len(rows)), -1, np.int64)
     for j, o in enumerate(offs):
