@@ -325,6 +325,7 @@ def rebuild_knowledge(intake, frames: list, timings: dict[str, float], moved: di
     if intake.structure is not None:
         t = time.perf_counter()
         rebuild_surfels(intake.structure, frames, moved)
+        intake.structure.forget_recent(moved)  # their kept points lie where the old poses put them
         timings["surfels"] = 1e3 * (time.perf_counter() - t)
 
 

@@ -1,12 +1,23 @@
 """Per keyframe, the structure part of AiSDF: update the global Atlanta frame from the
 keyframe's normals (Sec. III-B), extract Atlanta-aware surfels and the surfel mask
 (Sec. III-C), and merge the surfels into the global planar map (beyond the paper).
-Pure numpy; the pipeline calls :meth:`Structure.process` for each keyframe."""
+Pure numpy; the pipeline calls :meth:`Structure.process` for each keyframe.
+
+Late surfels (beyond the paper): a keyframe's surfels lie only on the directions published
+when it arrives, and a direction is published only once ``confirm_keyframes`` keyframes
+have seen it, so the keyframes that saw a wall first, often the only ones that saw it
+well, would never give it a surfel. The structure keeps the block-averaged points of the
+last ``tentative_keyframes`` keyframes (the window in which a direction is confirmed; about
+150 KB each; not in checkpoints); when a direction is published (or the frame initialised,
+publishing the vertical and the first directions), those keyframes' surfels on the new
+directions are extracted and merged into the global map, and ``late`` lists them per
+keyframe so the mapper can add them to the stored keyframes too."""
 
 from __future__ import annotations
 
 import json
 import time
+from collections import deque
 
 import numpy as np
 
@@ -15,7 +26,7 @@ from .atlanta import AtlantaConfig, AtlantaEstimator, AtlantaFrame
 from ..mapping.frames import Frame
 from .surfel_map import GlobalSurfelMap, SurfelMapConfig
 from .surfel_types import Surfels
-from .surfels import SurfelConfig, extract_surfels, keyframe_points
+from .surfels import KeyframePoints, SurfelConfig, extract_surfels, keyframe_points, surfels_of_points
 
 
 class Structure:
@@ -28,6 +39,10 @@ class Structure:
         self.rng = np.random.default_rng(seed)
         self.n_keyframes = 0
         self._aligned: tuple[int, Surfels] | None = None
+        # (key, frame_id, points as float32) of the last keyframes, for their late surfels
+        self._recent: deque = deque(maxlen=max(self.estimator.config.tentative_keyframes, 1))
+        self.late: list[tuple[tuple, Surfels]] = []  # the last process()'s late surfels, per earlier keyframe
+        self.n_late = 0  # late surfels produced, in all
 
     def process(self, frame: Frame) -> dict[str, float]:
         """Fills ``frame.surfels`` and ``frame.surfel_mask`` from the frame's valid depth
@@ -40,15 +55,46 @@ class Structure:
         if not valid.all():  # the mapper's rule: no surfel or normal from a pixel it would not train on
             depth = np.where(valid, depth, 0.0).astype(np.float32)
         kp = keyframe_points(depth, frame.K, frame.T_WC, self.surfel_cfg)
+        before = self._published()
         local = self.estimator.update(kp.normals_W, frame.T_WC)
         t1 = time.perf_counter()
         surfels, mask = extract_surfels(depth, frame.K, frame.T_WC, local.frame, self.surfel_cfg, self.rng,
                                         frame.frame_id, points=kp)
         frame.surfels, frame.surfel_mask = surfels, mask
         self.map.add(surfels)
+        self.late = self._late(self._published() - before)
+        self._recent.append((frame.key, frame.frame_id, _compact(kp)))
         t2 = time.perf_counter()
         self.n_keyframes += 1
         return {"atlanta": 1e3 * (t1 - t0), "surfels": 1e3 * (t2 - t1)}
+
+    def _published(self) -> set[int]:
+        """The direction indices published so far (-1: the vertical, once initialised)."""
+        f = self.estimator.frame
+        return set() if not f.valid else {-1, *(int(i) for i in f.indices)}
+
+    def _late(self, new: set[int]) -> list[tuple[tuple, Surfels]]:
+        """The earlier keyframes' surfels on the directions ``new`` (just published), merged into
+        the global map: [(keyframe key, surfels)] for those that have any."""
+        out: list[tuple[tuple, Surfels]] = []
+        if not new:
+            return out
+        frame = self.estimator.frame
+        for key, frame_id, kp in self._recent:
+            s = surfels_of_points(kp, frame, self.surfel_cfg, self.rng, frame_id, directions=new)
+            if len(s):
+                self.map.add(s)
+                out.append((key, s))
+                self.n_late += len(s)
+        return out
+
+    def forget_recent(self, keys) -> None:
+        """Drops the kept points of these keyframes (moved by a pose correction: the points are
+        where the old pose put them)."""
+        keys = set(keys)
+        kept = [r for r in self._recent if r[0] not in keys]
+        self._recent.clear()
+        self._recent.extend(kept)
 
     def remove_surfels(self, which: np.ndarray) -> int:
         """Removes global surfels (a boolean mask over ``map``): seen through as free space."""
@@ -78,7 +124,8 @@ class Structure:
     def stats(self) -> dict:
         f = self.atlanta_frame()
         return {"horizontal_directions": 0 if f is None else int(len(f.horizontal)),
-                "surfels_produced": int(self.map.n_produced), "surfels_kept": int(self.map.n_kept)}
+                "surfels_produced": int(self.map.n_produced), "surfels_kept": int(self.map.n_kept),
+                "surfels_late": int(self.n_late)}
 
     def state_dict(self) -> dict:
         return {"estimator": self.estimator.state_dict(), "map": self.map.state_dict(),
@@ -91,3 +138,11 @@ class Structure:
         if state.get("rng") is not None:  # absent in checkpoints before 2026-12-02: a fresh generator
             self.rng.bit_generator.state = json.loads(state["rng"])
         self._aligned = None
+
+
+def _compact(kp: KeyframePoints) -> KeyframePoints:
+    """The points kept for late surfels, as float32 (half the memory; extraction's tolerances
+    are millimetres and more)."""
+    f = lambda a: np.asarray(a, np.float32)  # noqa: E731
+    return KeyframePoints(f(kp.points_W), f(kp.normals_W), f(kp.depth), f(kp.spacing), np.asarray(kp.cam_W, np.float64),
+                          kp.stride)

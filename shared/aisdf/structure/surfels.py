@@ -42,7 +42,8 @@ from .surfel_fit import find_planes, find_rectangles
 from .surfel_image import KeyframePoints, keyframe_points, surfel_mask
 from .surfel_types import Surfels
 
-__all__ = ["SurfelConfig", "KeyframePoints", "keyframe_points", "extract_surfels", "surfel_mask"]
+__all__ = ["SurfelConfig", "KeyframePoints", "keyframe_points", "extract_surfels", "surfels_of_points",
+           "surfel_mask"]
 
 
 def _floor_axis(p: np.ndarray, vert: np.ndarray, horizontals: list[np.ndarray]) -> np.ndarray:
@@ -80,18 +81,38 @@ def extract_surfels(depth: np.ndarray, K: np.ndarray, T_WC: np.ndarray, atlanta:
     computed (e.g. for the Atlanta update).
     """
     cfg = config or SurfelConfig()
-    rng = rng or np.random.default_rng(frame_id if frame_id >= 0 else 0)
     depth = np.asarray(depth, dtype=np.float64)
     frame = atlanta.frame if isinstance(atlanta, LocalAtlanta) else atlanta
     if not frame.valid or (isinstance(atlanta, LocalAtlanta) and not atlanta.initialised):
         return Surfels(), np.zeros(depth.shape, dtype=bool)
     kp = points if points is not None else keyframe_points(depth, K, T_WC, cfg)
+    surfels = surfels_of_points(kp, atlanta, cfg, rng, frame_id)
+    if len(surfels) == 0:
+        return surfels, np.zeros(depth.shape, dtype=bool)
+    return surfels, surfel_mask(depth, K, T_WC, surfels, cfg, kp.stride)
+
+
+def surfels_of_points(kp: KeyframePoints, atlanta: AtlantaFrame | LocalAtlanta, config: SurfelConfig | None = None,
+                      rng: np.random.Generator | None = None, frame_id: int = -1,
+                      directions: set[int] | None = None) -> Surfels:
+    """Steps 2-4 on a keyframe's points: its surfels (world frame), no mask.
+
+    ``directions``: extract only the planes of these direction indices (-1 the vertical,
+    k ``horizontal[k]``; None: all of ``atlanta``'s). Every point still goes to the nearest of
+    all of ``atlanta``'s directions, so a point of another wall never joins these planes
+    (the mapper uses this for the keyframes that came before a direction was published).
+    """
+    cfg = config or SurfelConfig()
+    rng = rng or np.random.default_rng(frame_id if frame_id >= 0 else 0)
+    frame = atlanta.frame if isinstance(atlanta, LocalAtlanta) else atlanta
+    if not frame.valid or (isinstance(atlanta, LocalAtlanta) and not atlanta.initialised):
+        return Surfels()
     V, dir_idx, ref = _directions(atlanta)
     floor_cands = [ref, *np.asarray(frame.horizontal).reshape(-1, 3)]
     vert = V[0]
     P = len(kp.points_W)
     if P == 0:
-        return Surfels(), np.zeros(depth.shape, dtype=bool)
+        return Surfels()
     cosines = np.abs(kp.normals_W @ V.T)
     assign = np.argmax(cosines, axis=1)
     assign[cosines[np.arange(P), assign] < np.cos(np.radians(cfg.normal_deg))] = -1
@@ -101,7 +122,7 @@ def extract_surfels(depth: np.ndarray, K: np.ndarray, T_WC: np.ndarray, atlanta:
     rows: dict[str, list] = {k: [] for k in ("center", "normal", "axis1", "axis2", "extent", "direction")}
     for j, v in enumerate(V):
         sel = np.flatnonzero(assign == j)
-        if len(sel) < min_pts:
+        if len(sel) < min_pts or (directions is not None and int(dir_idx[j]) not in directions):
             continue
         pts = kp.points_W[sel]
         off = pts @ v
@@ -134,6 +155,5 @@ def extract_surfels(depth: np.ndarray, K: np.ndarray, T_WC: np.ndarray, atlanta:
                 rows["extent"].append(hi - lo)
                 rows["direction"].append(dir_idx[j])
     if not rows["center"]:
-        return Surfels(), np.zeros(depth.shape, dtype=bool)
-    surfels = Surfels(**rows, keyframe=np.full(len(rows["center"]), frame_id))
-    return surfels, surfel_mask(depth, K, T_WC, surfels, cfg, kp.stride)
+        return Surfels()
+    return Surfels(**rows, keyframe=np.full(len(rows["center"]), frame_id))
