@@ -94,23 +94,6 @@ def test_a_cabinet_face_stops_where_its_top_meets_it():
     assert front(bare).sum() > 50 and bare[front(bare), 2].min() > 0.9
 
 
-def test_a_wall_glimpsed_in_one_view_is_carried_on():
-    """A far wall (x = 3) one keyframe glimpsed at the edge of its view: 0.2 m^2 of surfels, no
-    space seen beyond x = 2. Its plane is layout: carried on 1.5 m along the room, from the
-    floor to the ceiling."""
-    s = room_surfels()
-    glimpse = Surfels(center=[[3.0, 1.0, 1.3]], normal=[-X], axis1=[Y], axis2=[Z], extent=[[0.5, 0.4]],
-                      direction=[1], keyframe=[0])
-    p = predict(Surfels.concat([s, glimpse]), room_observed(), BOX, Z)
-    wall = p[on_plane(p, X, 3.0)]
-    assert len(wall) > 1000
-    assert wall[:, 1].max() > 2.4 and wall[:, 1].min() < 0.15  # on along the room, to the y = 0 wall
-    assert wall[:, 2].min() >= -0.05 - 1e-9 and wall[:, 2].max() <= 2.65 + 1e-9  # floor to ceiling
-    inner = lambda q: on_plane(q, X, 3.0) & (np.abs(q[:, 1] - 2.0) < 1.8) & (np.abs(q[:, 2] - 1.3) < 1.2)  # noqa: E731
-    assert inner(p).sum() > 1000
-    assert not inner(predict(s, room_observed(), BOX, Z)).any()  # not without the glimpse
-
-
 def test_nothing_is_predicted_without_observed_space_or_surfels():
     assert len(predict(room_surfels(), None, BOX)) == 0
     assert len(predict(Surfels(), room_observed(), BOX)) == 0

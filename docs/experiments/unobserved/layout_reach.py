@@ -45,9 +45,9 @@ pl = L.planes(S, 0.05)
 n = np.asarray(scene.gt_grad(p), np.float64); n /= np.linalg.norm(n, axis=1, keepdims=True)
 onplane = np.zeros(len(q), bool)
 for P_ in pl:
-    if P_.area < 0.5: continue
+    if P_.area < L.LayoutConfig().min_area: continue
     onplane |= (np.abs(q @ P_.normal - P_.offset) < 0.05) & (np.abs(n @ P_.normal) > 0.95)
-print("on a surfel plane (area >= 0.5 m^2):", onplane.mean().round(3), "; of those predicted within 5 cm:", np.mean(dq[onplane] < 0.05).round(3))
+print(f"on a surfel plane (area >= {L.LayoutConfig().min_area} m^2):", onplane.mean().round(3), "; of those predicted within 5 cm:", np.mean(dq[onplane] < 0.05).round(3))
 # observed state of q cells
 obs = st.observed
 try:
@@ -76,6 +76,6 @@ on_k = np.zeros(len(q), bool); on_any = np.zeros(len(q), bool)
 for P_ in L.planes(KS, 0.05):
     hit = (np.abs(q @ P_.normal - P_.offset) < 0.05) & (np.abs(n @ P_.normal) > 0.95)
     on_any |= hit
-    if P_.area >= 0.5: on_k |= hit
-print("on a plane of the keyframes' own surfels (before merging): any area", on_any.mean().round(3), "; >= 0.5 m^2", on_k.mean().round(3), "(global map:", onplane.mean().round(3), ")")
+    if P_.area >= L.LayoutConfig().min_area: on_k |= hit
+print("on a plane of the keyframes' own surfels (before merging): any area", on_any.mean().round(3), f"; >= {L.LayoutConfig().min_area} m^2", on_k.mean().round(3), "(global map:", onplane.mean().round(3), ")")
 print("cleared by free space:", pipe.intake.cleared)
