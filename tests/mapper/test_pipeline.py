@@ -140,12 +140,11 @@ def test_a_keyframe_holds_its_depth_once(seq, mapper):
     the memory count does not count the depth twice, and a checkpoint brings back the same
     keyframes."""
     from aisdf.mapper.factory import restore_mapper
-    from aisdf.structure.surfels import surfel_mask
     from aisdf.submaps.pipeline import SubmapPipeline
 
     p = small() if mapper == "single" else SubmapPipeline.from_settings(
         "cpu", {"network": {"width": 32}, "n_rays": 20})
-    given, masks_given, n_surfels = [], [], []
+    given, masks_given = [], []
     for i in range(0, 40, 8):
         f = frame(seq, i)
         f.depth = f.depth.astype(np.float32)
@@ -155,28 +154,21 @@ def test_a_keyframe_holds_its_depth_once(seq, mapper):
         assert np.array_equal(f.depth, raw, equal_nan=True)  # the caller's frame: untouched
         given.append(raw)
         masks_given.append(f.surfel_mask)  # (the Atlanta module fills the caller's frame)
-        n_surfels.append(0 if f.surfels is None else len(f.surfels))
     stored = p.trainer.store.keyframes if mapper == "single" else list(p.frames.values())
     assert len(stored) == len(given)
     H, W = given[0].shape
     assert sum(m is not None and m.any() for m in masks_given) >= 3  # surfels were found
-    late = 0
-    for kf, raw, mask, n in zip(stored, given, masks_given, n_surfels):
+    for kf, raw, mask in zip(stored, given, masks_given):
         assert kf.frame.depth is kf.depth and kf.depth.dtype == np.float32
         ok = np.isfinite(raw) & (raw > 0)
         assert np.array_equal(kf.depth, np.where(ok, raw, 0))
         # the surfel mask: one bit a pixel in the keyframe, none in the stored frame
         assert kf.frame.surfel_mask is None and (kf.surfel_mask is None) == (mask is None)
         if mask is not None:
-            # ... and the pixels of its late surfels (a direction published after it arrived)
-            extra = kf.frame.surfels[np.arange(len(kf.frame.surfels)) >= n]
-            late += len(extra)
-            want = mask | (surfel_mask(kf.depth, kf.frame.K, kf.frame.T_WC, extra) if len(extra) else False)
-            assert np.array_equal(kf.surfel_mask, want) and kf.surfel_bits.nbytes == -(-H * W // 8)
+            assert np.array_equal(kf.surfel_mask, mask) and kf.surfel_bits.nbytes == -(-H * W // 8)
         # depth 4 B per pixel, the surfel mask 1 bit, the surfels a few hundred bytes (normals
         # are computed where sampled)
         assert kf.nbytes() <= H * W * 4 + H * W // 8 + 4096
-    assert late >= 1  # (some came: the first keyframe arrived before the Atlanta frame had directions)
     masks = 0 if mapper == "single" else sum(  # submaps: a pixel mask per keyframe and submap it joined
         v.pixel_bits.nbytes for sm in p.submaps.values() for v in sm.trainer.store.keyframes)
     assert p.memory()["keyframes"] == sum(k.nbytes() for k in stored) + masks

@@ -17,8 +17,6 @@ from .. import geometry, protocol
 from ..mapping.frames import Frame
 from ..observed import ObservedSpace
 from ..structure.measured import MeasuredSurface
-from ..structure.surfel_image import surfel_mask
-from ..structure.surfel_types import Surfels
 from . import clearing
 from .coverage import KeyframeCoverage, KeyframePolicy
 
@@ -100,8 +98,7 @@ class KeyframeIntake:
         (``clearing``: measured points, the pixels of the stored keyframes ``stored(key)``
         returns (a ``StoredFrame`` or None), surfels) and the structure has processed it;
         None for a keyframe that adds nothing new and clears nothing (``coverage``: counted as
-        ``redundant``). Returns the keys of stored keyframes that lost pixels (or gained late
-        surfels) in ``.touched``.
+        ``redundant``). Returns the keys of stored keyframes that lost pixels in ``.touched``.
         Raises ValueError (and changes nothing) for one that cannot be used: a mask of another
         shape, too few valid depth pixels, or a (sensor, frame_id) ``known`` says is in the map."""
         frame = frame_from_keyframe(kf) if isinstance(kf, protocol.Keyframe) else kf
@@ -127,26 +124,7 @@ class KeyframeIntake:
             for k, v in self.structure.process(frame).items():
                 self._pending[k] = self._pending.get(k, 0.0) + v
                 self.timings[k].append(v)
-            if stored is not None:
-                self._late_surfels(stored)
         return frame
-
-    def _late_surfels(self, stored) -> None:
-        """The structure's late surfels (``Structure.late``: earlier keyframes' surfels on a
-        direction published just now) join their stored keyframes: their surfels, and their
-        surfel masks (so training takes those pixels as the surfels' own, as it does a
-        keyframe's first surfels); the keyframes go to ``touched`` (replayed as new)."""
-        for key, s in self.structure.late:
-            sf = stored(key)
-            if sf is None:  # evicted or never stored: the global map has them all the same
-                continue
-            f = sf.frame
-            f.surfels = s if f.surfels is None or not len(f.surfels) else Surfels.concat([f.surfels, s])
-            if sf.surfel_bits is not None:
-                mask = surfel_mask(sf.depth, f.K, f.T_WC, s, self.structure.surfel_cfg)
-                np.bitwise_or(sf.surfel_bits, np.packbits(mask.reshape(-1)), out=sf.surfel_bits)
-            if key not in self.touched:
-                self.touched.append(key)
 
     def _clear(self, frame: Frame, stored) -> bool:
         """``clearing``'s three retirements for one new keyframe; True when they are news

@@ -10,8 +10,11 @@ well, would never give it a surfel. The structure keeps the block-averaged point
 last ``tentative_keyframes`` keyframes (the window in which a direction is confirmed; about
 150 KB each; not in checkpoints); when a direction is published (or the frame initialised,
 publishing the vertical and the first directions), those keyframes' surfels on the new
-directions are extracted and merged into the global map, and ``late`` lists them per
-keyframe so the mapper can add them to the stored keyframes too."""
+directions are extracted and merged into the global map (``late`` lists them, per
+keyframe). They are for the planar map and what reads it (subscribers, the query service's
+layout prior): training keeps the surfels and masks each keyframe was given on arrival, and
+late extraction draws on its own random numbers (seeded by the keyframe), so training is
+what it was without them."""
 
 from __future__ import annotations
 
@@ -81,7 +84,7 @@ class Structure:
             return out
         frame = self.estimator.frame
         for key, frame_id, kp in self._recent:
-            s = surfels_of_points(kp, frame, self.surfel_cfg, self.rng, frame_id, directions=new)
+            s = surfels_of_points(kp, frame, self.surfel_cfg, None, frame_id, directions=new)
             if len(s):
                 self.map.add(s)
                 out.append((key, s))
