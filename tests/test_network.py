@@ -8,7 +8,7 @@ import torch
 
 from aisdf.network import (
     NetworkConfig, PositionalEncoding, SDFNetwork, build_model, icosahedron_directions, load_numpy_state,
-    model_spec, n_params, sdf_and_grad, state_to_numpy,
+    model_spec, move_network, n_params, sdf_and_grad, state_to_numpy,
 )
 
 torch.set_num_threads(1)  # 2 threads stall badly when another process holds a core
@@ -100,3 +100,29 @@ def test_bad_state_and_spec_raise():
         build_model({**spec, "n_params": 5})
     with pytest.raises(ValueError, match="skip_layer"):
         SDFNetwork(NetworkConfig(n_layers=3, skip_layer=3))
+
+
+@pytest.mark.parametrize("skip", [3, None])
+def test_a_moved_network_answers_at_the_new_place_what_it_answered_at_the_old(skip):
+    """move_network(net, T): net(T x) afterwards is net(x) before, gradients turned with T,
+    and a snapshot (state round trip) carries the move."""
+    torch.manual_seed(0)
+    net = SDFNetwork(NetworkConfig(offset=[1.0, -2.0, 0.5], width=64, skip_layer=skip))
+    a = np.array([0.3, 0.5, 0.8]) / np.linalg.norm([0.3, 0.5, 0.8])
+    K = np.array([[0, -a[2], a[1]], [a[2], 0, -a[0]], [-a[1], a[0], 0]])
+    th = np.radians(7.0)
+    T = np.eye(4)
+    T[:3, :3] = np.eye(3) + np.sin(th) * K + (1 - np.cos(th)) * K @ K
+    T[:3, 3] = [0.2, -0.15, 0.05]
+    x = torch.tensor(np.random.default_rng(0).uniform(-3, 3, (500, 3)), dtype=torch.float32)
+    f0, g0 = sdf_and_grad(net, x)
+    move_network(net, T)
+    xn = x @ torch.tensor(T[:3, :3].T, dtype=torch.float32) + torch.tensor(T[:3, 3], dtype=torch.float32)
+    f1, g1 = sdf_and_grad(net, xn)
+    assert float(f0.abs().mean()) > 1e-3  # a field that is not flat
+    torch.testing.assert_close(f1, f0, atol=1e-5, rtol=0)
+    torch.testing.assert_close(g1, g0 @ torch.tensor(T[:3, :3].T, dtype=torch.float32), atol=1e-4, rtol=0)
+    back = build_model(model_spec(net))
+    load_numpy_state(back, state_to_numpy(net))
+    torch.testing.assert_close(back(xn), f0, atol=1e-5, rtol=0)
+    assert not torch.allclose(net(x), f0, atol=1e-4)  # it did move

@@ -229,3 +229,51 @@ def load_numpy_state(net: nn.Module, state: dict[str, np.ndarray]) -> None:
             raise ValueError(f"network state tensor {k} has non-numeric dtype {a.dtype}")
         tensors[k] = torch.as_tensor(np.array(a, dtype=np.float32), device=ref.device).to(ref.dtype)
     net.load_state_dict(tensors)
+
+
+# ----------------------------------------------------------------------------- rigid moves
+
+
+@torch.no_grad()
+def move_network(net: SDFNetwork, T: np.ndarray) -> None:
+    """Moves the field rigidly, in place: afterwards ``net(x)`` is what ``net(T^-1 x)`` was,
+    for the rigid 4x4 ``T`` (old world to new world). Exact up to float32 rounding: the
+    encoding's directions turn with the rotation (they are in the state, so snapshots carry
+    them) and the translation becomes a phase, which the first block and the skip block take
+    up by mixing each frequency's sin and cos columns; distances and their gradients' lengths
+    are unchanged by a rigid motion, so nothing else changes. Used after a pose correction
+    moves a submap's keyframes (nearly) rigidly: the network keeps what it learnt, at the
+    corrected place."""
+    T = np.asarray(T, dtype=np.float64)
+    R, t = T[:3, :3], T[:3, 3]
+    enc = net.encoding
+    s = enc.scale
+    off = enc.offset.detach().cpu().numpy().astype(np.float64)
+    dirs = enc.dirs.detach().cpu().numpy().astype(np.float64)  # (3, n)
+    # old scaled coordinates from new ones u = (x - off) s:  x_old_s = R^T u + c
+    c = s * (R.T @ (off - t) - off)
+    phase = c @ dirs  # (n,): old projections = u @ (R dirs) + phase
+    n = dirs.shape[1]
+    freqs = enc.freqs.detach().cpu().numpy().astype(np.float64)
+
+    def fix(layer: nn.Linear, start: int) -> None:
+        W = layer.weight.detach().cpu().numpy().astype(np.float64)
+        b = layer.bias.detach().cpu().numpy().astype(np.float64)
+        Wx = W[:, start:start + 3]
+        b = b + Wx @ c
+        W[:, start:start + 3] = Wx @ R.T
+        for j, f in enumerate(freqs):
+            i_s = start + 3 + 2 * n * j
+            i_c = i_s + n
+            th = f * phase
+            Ws, Wc = W[:, i_s:i_s + n].copy(), W[:, i_c:i_c + n].copy()
+            # Ws sin(fp + th) + Wc cos(fp + th), written over sin(fp) and cos(fp)
+            W[:, i_s:i_s + n] = Ws * np.cos(th) - Wc * np.sin(th)
+            W[:, i_c:i_c + n] = Ws * np.sin(th) + Wc * np.cos(th)
+        layer.weight.copy_(torch.as_tensor(W, dtype=layer.weight.dtype))
+        layer.bias.copy_(torch.as_tensor(b, dtype=layer.bias.dtype))
+
+    fix(net.layers[0], 0)
+    if net.cfg.skip_layer is not None:
+        fix(net.layers[net.cfg.skip_layer], net.cfg.width)
+    enc.dirs.copy_(torch.as_tensor(R @ dirs, dtype=enc.dirs.dtype))
