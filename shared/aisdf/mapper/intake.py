@@ -17,6 +17,7 @@ from .. import geometry, protocol
 from ..mapping.frames import Frame
 from ..observed import ObservedSpace
 from ..structure.measured import MeasuredSurface
+from ..structure.surfel_types import Surfels
 from . import clearing
 from .coverage import KeyframeCoverage, KeyframePolicy
 
@@ -124,6 +125,11 @@ class KeyframeIntake:
             for k, v in self.structure.process(frame).items():
                 self._pending[k] = self._pending.get(k, 0.0) + v
                 self.timings[k].append(v)
+            for key, S in self.structure.late if stored is not None else ():  # kept to move with a correction
+                held = stored(key)
+                if held is not None:
+                    f = getattr(held, "frame", held)
+                    f.late_surfels = S if f.late_surfels is None else Surfels.concat([f.late_surfels, S])
         return frame
 
     def _clear(self, frame: Frame, stored) -> bool:

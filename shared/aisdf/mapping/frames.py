@@ -39,6 +39,9 @@ class Frame:
     sensor: str = "depth"  # with frame_id, the keyframe's identity in a map several robots build
     depth_raw: np.ndarray | None = None
     depth_scale: float | None = None
+    # the surfels it gave on directions published after it arrived (the global map's only,
+    # not training's: aisdf.structure.process, late surfels), kept to move with a correction
+    late_surfels: Surfels | None = None
 
     @property
     def key(self) -> tuple[str, int]:
@@ -51,8 +54,9 @@ class Frame:
     def nbytes(self) -> int:
         """Bytes held by the frame's arrays (depth, raw depth, mask, surfels)."""
         n = sum(a.nbytes for a in (self.depth, self.depth_raw, self.surfel_mask) if a is not None)
-        if self.surfels is not None:
-            n += sum(np.asarray(getattr(self.surfels, f)).nbytes for f in SURFEL_FIELDS)
+        for S in (self.surfels, self.late_surfels):
+            if S is not None:
+                n += sum(np.asarray(getattr(S, f)).nbytes for f in SURFEL_FIELDS)
         return int(n)
 
     def to_dict(self) -> dict:
@@ -67,6 +71,8 @@ class Frame:
             "surfels": None if self.surfels is None else {f: getattr(self.surfels, f) for f in SURFEL_FIELDS},
             "surfel_mask": None if self.surfel_mask is None else np.asarray(self.surfel_mask, bool),
             "sensor": str(self.sensor),
+            "late_surfels": None if self.late_surfels is None else {f: getattr(self.late_surfels, f)
+                                                                    for f in SURFEL_FIELDS},
         }
 
     @classmethod
@@ -83,6 +89,7 @@ class Frame:
             int(d["frame_id"]), float(d["stamp"]), depth, np.asarray(d["K"], np.float64),
             np.asarray(d["T_WC"], np.float64), None if s is None else Surfels(**s),
             None if m is None else np.asarray(m, bool), str(d.get("sensor", "depth")), raw, scale,
+            None if d.get("late_surfels") is None else Surfels(**d["late_surfels"]),  # absent before 1.18
         )
 
 

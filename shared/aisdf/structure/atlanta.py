@@ -208,6 +208,22 @@ class AtlantaEstimator:
         self._prune()
         return local
 
+    def turn(self, rotations: dict[int, np.ndarray], default: np.ndarray) -> None:
+        """Turns the estimate by rotations (3x3): the vertical (and its scatter) by
+        ``rotations[-1]``, published direction ``k`` by ``rotations[k]``, the others by
+        ``default``; the horizontals are made orthogonal to the vertical again. For pose
+        corrections: the normals a direction was averaged from turn with their keyframes."""
+        if self.vertical is None:
+            return
+        R = rotations.get(-1, default)
+        self.vertical = unit(R @ self.vertical)
+        self._S = R @ self._S @ R.T
+        for d in self._dirs:
+            h = rotations.get(d.index, default) @ d.vector if d.index >= 0 else default @ d.vector
+            h = h - (h @ self.vertical) * self.vertical
+            if np.linalg.norm(h) > 1e-9:
+                d.vector = unit(h)
+
     # ------------------------------------------------------------------ state (checkpoints)
     def state_dict(self) -> dict:
         return {

@@ -29,7 +29,8 @@ from .atlanta import AtlantaConfig, AtlantaEstimator, AtlantaFrame
 from ..mapping.frames import Frame
 from .surfel_map import GlobalSurfelMap, SurfelMapConfig
 from .surfel_types import Surfels
-from .surfels import KeyframePoints, SurfelConfig, extract_surfels, keyframe_points, surfels_of_points
+from .surfels import (KeyframePoints, SurfelConfig, extract_surfels, keyframe_points, surfel_mask,
+                      surfels_of_points)
 
 
 class Structure:
@@ -91,6 +92,75 @@ class Structure:
                 self.n_late += len(s)
         return out
 
+    def extract_again(self, frame: Frame) -> None:
+        """Fits ``frame.surfels`` (and ``surfel_mask``) and ``frame.late_surfels`` afresh from
+        its depth at its (corrected) pose, each on the directions it lay on before (so the
+        directions it supported on arrival, and those published after it), as the current
+        frame has them, without touching the frame estimate or the global map: surfels fitted
+        at a drifted pose, on directions averaged from drifting normals, keep a tilt of their
+        own once moved. Random numbers seeded by the keyframe (repeatable)."""
+        own, late = frame.surfels, frame.late_surfels
+        if not self.estimator.initialised or not ((own is not None and len(own)) or (late is not None and len(late))):
+            return
+        depth = frame.metres()
+        valid = valid_depth(depth, self.max_depth)
+        if not valid.all():
+            depth = np.where(valid, depth, 0.0).astype(np.float32)
+        kp = keyframe_points(depth, frame.K, frame.T_WC, self.surfel_cfg)
+        f = self.estimator.frame
+        for which, old in (("own", own), ("late", late)):
+            if old is None or not len(old):
+                continue
+            rng = np.random.default_rng([int(frame.frame_id) & 0x7FFFFFFF, 7 if which == "own" else 8])
+            S = surfels_of_points(kp, f, self.surfel_cfg, rng, frame.frame_id,
+                                  directions={int(d) for d in np.unique(old.direction)})
+            if which == "late":
+                frame.late_surfels = S
+                continue
+            frame.surfels = S
+            frame.surfel_mask = (surfel_mask(depth, frame.K, frame.T_WC, S, self.surfel_cfg, kp.stride) if len(S)
+                                 else np.zeros(depth.shape, dtype=bool))
+
+    def follow_corrections(self, frames: list, moved: dict) -> dict[int, float]:
+        """After a pose correction (``moved``: key -> the old pose; ``frames`` the stored ones at
+        their new poses): the Atlanta frame turns with the keyframes that support it. Each
+        published direction (and the vertical) is turned by the mean of its supporting
+        keyframes' rotations, weighted by the area of their surfels on it (a keyframe not moved
+        counts with none), the tentative ones by the mean over all stored keyframes; so a frame
+        estimated from drifting poses becomes the frame of the corrected ones (a 2 degree drift
+        otherwise leaves the directions, and the surfels aligned to them, a degree off).
+        Returns the angle (degrees) each direction turned by (-1: the vertical)."""
+        rot = {}
+        for f in frames:
+            if f.key in moved:
+                R = np.asarray(f.T_WC, np.float64)[:3, :3] @ np.asarray(moved[f.key], np.float64)[:3, :3].T
+                rot[f.key] = R
+        if not rot or not self.estimator.initialised:
+            return {}
+        I = np.eye(3)
+        acc: dict[int, list] = {}
+        for f in frames:
+            S = f.surfels
+            if S is None or not len(S):
+                continue
+            area = np.prod(np.asarray(S.extent, np.float64), axis=1)
+            R = rot.get(f.key, I)
+            for j in np.unique(S.direction):
+                w = float(area[S.direction == j].sum())
+                a = acc.setdefault(int(j), [0.0, np.zeros((3, 3))])
+                a[0] += w
+                a[1] += w * R
+        mean = {j: _nearest_rotation(M / w) for j, (w, M) in acc.items() if w > 0}
+        default = _nearest_rotation(sum(rot.values(), np.zeros((3, 3))) / len(frames) + I * (1 - len(rot) / len(frames)))
+        before = self.estimator.frame
+        self.estimator.turn(mean, default)
+        after = self.estimator.frame
+        self._aligned = None
+        out = {-1: float(np.degrees(np.arccos(np.clip(before.vertical @ after.vertical, -1, 1))))}
+        for k, (h0, h1) in enumerate(zip(np.asarray(before.horizontal), np.asarray(after.horizontal))):
+            out[int(before.indices[k])] = float(np.degrees(np.arccos(np.clip(abs(h0 @ h1), -1, 1))))
+        return out
+
     def forget_recent(self, keys) -> None:
         """Drops the kept points of these keyframes (moved by a pose correction: the points are
         where the old pose put them)."""
@@ -149,3 +219,13 @@ def _compact(kp: KeyframePoints) -> KeyframePoints:
     f = lambda a: np.asarray(a, np.float32)  # noqa: E731
     return KeyframePoints(f(kp.points_W), f(kp.normals_W), f(kp.depth), f(kp.spacing), np.asarray(kp.cam_W, np.float64),
                           kp.stride)
+
+
+def _nearest_rotation(M: np.ndarray) -> np.ndarray:
+    """The rotation nearest to ``M`` (3x3; a mean of rotations), by SVD."""
+    U, _, Vt = np.linalg.svd(M)
+    R = U @ Vt
+    if np.linalg.det(R) < 0:
+        U[:, -1] *= -1
+        R = U @ Vt
+    return R
