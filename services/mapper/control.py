@@ -55,8 +55,9 @@ class ControlMixin:
             self.counts["reposed"] = self.counts.get("reposed", 0) + res["reposed"]
             self.counts["pose_batches"] = self.counts.get("pose_batches", 0) + 1
             log.info("pose corrections from %s: %d keyframes re-posed, %d unknown, %d unchanged, %d submaps "
-                     "retrained, %d removed; ms: %s", corr.sensor, res["reposed"], len(res["unknown"]),
-                     res["unchanged"], len(res["submaps"]), len(res.get("removed", [])),
+                     "retrained (%d networks moved, %d started again), %d removed; ms: %s", corr.sensor, res["reposed"],
+                     len(res["unknown"]), res["unchanged"], len(res["submaps"]), len(res.get("moved", [])),
+                     len(res.get("reset", [])), len(res.get("removed", [])),
                      " ".join(f"{k} {v:.0f}" for k, v in res["timings_ms"].items()))
             job["reply"] = protocol.PosesApplied(
                 corr.sensor, res["reposed"], [int(i) for _, i in res["unknown"]], res["unchanged"],

@@ -16,25 +16,36 @@ For a batch ``{(sensor, frame_id): T_WC}`` (``aisdf.mapper.Mapper.repose``), bot
    voxels); the coverage (the redundancy and eviction test) and the box take them again.
    What evicted keyframes (or those the one network's store dropped) gave stays, except in
    the voxels pooled again, where it is lost: their poses cannot be corrected.
-3. The global surfel map is merged again where the moved keyframes' surfels were
-   (``rebuild_surfels``): the global surfels they had merged into go, and the stored
-   keyframes' surfels there (the moved ones at their new poses) are merged in again. The
-   Atlanta frame is kept: its directions come from many keyframes' normals and a correction
-   rotates a few by little.
+3. The Atlanta frame turns with the keyframes that support it (``Structure.follow_corrections``:
+   each direction by the mean rotation of the keyframes whose surfels lie on it, weighted by
+   their area): a frame averaged from drifting normals is otherwise left a degree or two off,
+   and the global surfels, aligned to it, with it. Then the global surfel map is merged again
+   where the moved keyframes' surfels were (``rebuild_surfels``): the global surfels they had
+   merged into, or that they gave, go; the moved keyframes' surfels (and the masks training
+   samples by) are fitted again from their depth at the new pose on the corrected directions
+   (``Structure.extract_again``); and the stored keyframes' surfels there are merged in again.
 4. Networks. The submap mapper gives each corrected keyframe to the submaps it observes
    under its new pose (the rule of ``SubmapPipeline._assign``, with new pixel masks), takes
    it out of those it no longer observes, and keeps every store in arrival order. A submap
    whose keyframes changed learnt the old surface where the keyframe no longer puts it, and
-   a network forgets a surface only where new rays pass; so by default (``submap.repose_networks:
-   reset``) when one of its keyframes' observed points moved by more than
-   ``submap.repose_reset_m`` (95th percentile over its rays) its network starts again (a
-   fresh network with its seed and centre, new AdamW state); a smaller correction keeps the
-   network, which follows it within steps. Either way the next ``submap.repose_steps``
-   steps of each such submap come first (``retrain_pick``, the pipeline's steps, not at
-   once: the correction is answered without waiting for them), and a fresh network is not
-   published before it has had them: receivers keep its last snapshot meanwhile. ``keep``
-   never resets (the old surfaces fade only where new rays pass). A submap left with no keyframe is removed from
-   the mapper's map (a query service keeps the snapshot it holds: docs/protocol.md).
+   a network forgets a surface only where new rays pass. So when one of its keyframes'
+   observed points moved by more than ``submap.repose_reset_m`` (95th percentile over its
+   rays), by default (``submap.repose_networks: move``) one rigid motion is fitted to the
+   observed points the network learnt from (``submap_pairs``, ``submap_motion``: inside its
+   box at the old and the new pose); if it leaves every keyframe within ``repose_reset_m``,
+   the network is moved with it (``aisdf.network.move_network``, exact: its training is
+   kept, the rate goes up again as for a new keyframe, and it is published with the next
+   map). Otherwise (drift that grew along the walk: a submap of a few metres holds keyframes
+   minutes apart) it starts again (a fresh network with its seed and centre, new AdamW
+   state), first taught the old network's field warped point by point by the correction
+   (``distill_network``, ``submap.repose_distill_steps``). ``reset`` always starts again
+   (no distillation), ``keep`` never does; a smaller correction keeps the network, which
+   follows it within steps. A network started again, and one kept, gets the next
+   ``submap.repose_steps`` steps of its submap first (``retrain_pick``, the pipeline's steps,
+   not at once: the correction is answered without waiting for them) and is not published
+   before it has had them: receivers keep its last snapshot meanwhile. A submap left with
+   no keyframe is removed from the mapper's map (a query service keeps the snapshot it
+   holds: docs/protocol.md).
    The one-network mapper keeps its network, which trains on from the corrected keyframes.
 
 Every changed submap is published with the next map (``published_step`` reset; a fresh
@@ -49,14 +60,19 @@ import time
 from dataclasses import dataclass, field, replace
 
 import numpy as np
+import torch
 
 from ..codec import is_rigid
 from ..geometry import backproject, transform, valid_depth
+from ..network import move_network
 from ..observed import ObservedSpace, pack_keys, unpack_keys
 from ..structure.measured import MeasuredSurface
 from ..structure.surfel_types import Surfels
 from .intake import grow_bounds
 
+MOVE_MIN_POINTS = 50  # a submap whose box holds fewer of its keyframes' points is not moved but reset
+DISTIL_BATCH = 1024  # points a distillation step (distill_network)
+DISTIL_LR = 1e-3
 SINGLE_STEPS = 0  # the one-network mapper: training steps taken at once after a correction
 FULL_SHARE = 0.25  # a batch moving more than this share of the stored keyframes pools every point again
 SAME_POSE_ATOL = 1e-9  # a pose within this (every matrix entry) of the held one is unchanged
@@ -75,13 +91,14 @@ class ReposeResult:
     submaps: list[str] = field(default_factory=list)
     removed: list[str] = field(default_factory=list)  # submaps left with no keyframe
     reset: list[str] = field(default_factory=list)  # submaps whose network started again
+    moved: list[str] = field(default_factory=list)  # submaps whose network was moved with its keyframes
     old_poses: dict = field(default_factory=dict)  # key -> the pose it had (the reposed ones)
     timings_ms: dict[str, float] = field(default_factory=dict)
 
     def as_dict(self) -> dict:
         return {"reposed": len(self.reposed), "unknown": [list(k) for k in self.unknown],
                 "unchanged": len(self.unchanged), "submaps": list(self.submaps),
-                "removed": list(self.removed), "reset": list(self.reset),
+                "removed": list(self.removed), "reset": list(self.reset), "moved": list(self.moved),
                 "timings_ms": {k: round(v, 2) for k, v in self.timings_ms.items()}}
 
 
@@ -121,6 +138,8 @@ def set_poses(frames: dict, corrections: dict[Key, np.ndarray], result: ReposeRe
             result.unchanged.append(key)
             continue
         f.surfels = move_surfels(f.surfels, T @ np.linalg.inv(old))
+        if getattr(f, "late_surfels", None) is not None:
+            f.late_surfels = move_surfels(f.late_surfels, T @ np.linalg.inv(old))
         f.T_WC = T.copy()
         result.reposed.append(key)
         result.old_poses[key] = old
@@ -273,21 +292,27 @@ def rebuild_surfels(structure, frames: list, moved: dict[Key, np.ndarray]) -> No
     old = []
     for key, T_old in moved.items():
         f = by_key[key]
-        if f.surfels is not None and len(f.surfels):
-            old.append(move_surfels(f.surfels, T_old @ np.linalg.inv(np.asarray(f.T_WC, np.float64))))
+        for S in (f.surfels, f.late_surfels):
+            if S is not None and len(S):
+                old.append(move_surfels(S, T_old @ np.linalg.inv(np.asarray(f.T_WC, np.float64))))
     if old and len(m):
         G = m.surfels()
         o_lo, o_hi = _surfel_boxes(Surfels.concat(old), grow)
-        hit = _meets(*_surfel_boxes(G), o_lo, o_hi)
+        # also those a moved keyframe gave (late surfels lie on directions its own surfels may lack)
+        ids = np.array([int(k[1]) for k in moved], dtype=np.int64)
+        hit = _meets(*_surfel_boxes(G), o_lo, o_hi) | np.isin(np.asarray(G.keyframe, np.int64), ids)
         r_lo, r_hi = _surfel_boxes(G[hit], grow)
         m.remove(hit)
     else:
         r_lo = r_hi = np.zeros((0, 3))
     produced = m.n_produced
+    for key in moved:  # fitted again at the corrected pose, on the corrected directions
+        structure.extract_again(by_key[key])
     for f in frames:
-        S = f.surfels
-        if S is None or not len(S):
+        S = [x for x in (f.surfels, f.late_surfels) if x is not None and len(x)]
+        if not S:
             continue
+        S = Surfels.concat(S) if len(S) > 1 else S[0]
         if f.key not in moved:
             S = S[_meets(*_surfel_boxes(S), r_lo, r_hi)]
         if len(S):
@@ -324,6 +349,7 @@ def rebuild_knowledge(intake, frames: list, timings: dict[str, float], moved: di
     timings["coverage"] = 1e3 * (time.perf_counter() - t)
     if intake.structure is not None:
         t = time.perf_counter()
+        intake.structure.follow_corrections(frames, moved)  # the Atlanta frame turns with its keyframes
         rebuild_surfels(intake.structure, frames, moved)
         intake.structure.forget_recent(moved)  # their kept points lie where the old poses put them
         timings["surfels"] = 1e3 * (time.perf_counter() - t)
@@ -376,6 +402,90 @@ def _insert_ordered(items: list, item, rank: dict, key) -> None:
     items.insert(i, item)
 
 
+def fit_rigid(P: np.ndarray, Q: np.ndarray) -> np.ndarray:
+    """The rigid 4x4 ``T`` nearest to carrying the points ``P`` (N, 3) onto ``Q`` (least
+    squares, Kabsch)."""
+    p0, q0 = P.mean(0), Q.mean(0)
+    U, _, Vt = np.linalg.svd((P - p0).T @ (Q - q0))
+    d = np.sign(np.linalg.det(Vt.T @ U.T)) or 1.0
+    R = Vt.T @ np.diag([1.0, 1.0, d]) @ U.T
+    T = np.eye(4)
+    T[:3, :3], T[:3, 3] = R, q0 - R @ p0
+    return T
+
+
+def submap_pairs(pipe, c, held: list, before: dict, after: dict) -> list[tuple[np.ndarray, np.ndarray]]:
+    """What the submap ``c``'s network learnt, and where a correction put it: for each keyframe
+    it held (``held``), its observed points (``SubmapPipeline._ray_points``) at the old pose and
+    at the new one (the same for a keyframe not moved), those inside its extended box at both."""
+    pairs = []
+    for k in held:
+        if k in before and k in after:
+            p, q = before[k], after[k]
+        elif k in pipe.frames:
+            p = q = pipe._ray_points(pipe.frames[k])[0]
+        else:
+            continue
+        inside = pipe.grid.inside(c, p) & pipe.grid.inside(c, q)  # learnt there, and still in its box
+        if inside.any():
+            pairs.append((p[inside], q[inside]))
+    return pairs
+
+
+def submap_motion(pairs: list[tuple[np.ndarray, np.ndarray]]) -> tuple[np.ndarray | None, float]:
+    """How a correction moved what a submap's network learnt (``submap_pairs``): the rigid motion
+    (``fit_rigid``) of all the points, and what it leaves: the largest over the keyframes of
+    the 95th percentile of their points' distance from where the motion puts them (so that one
+    keyframe moved far among many still is not hidden). (None, inf) with fewer than
+    ``MOVE_MIN_POINTS`` points."""
+    if sum(len(p) for p, _ in pairs) < MOVE_MIN_POINTS:
+        return None, float("inf")
+    T = fit_rigid(np.concatenate([p for p, _ in pairs]), np.concatenate([q for _, q in pairs]))
+    left = max(float(np.percentile(np.linalg.norm(p @ T[:3, :3].T + T[:3, 3] - q, axis=1), 95)) for p, q in pairs)
+    return T, left
+
+
+def distill_network(pipe, c, net, old_net, pairs, steps: int, seed: int = 0) -> float:
+    """Teaches the fresh ``net`` of submap ``c`` what ``old_net`` learnt, at the places a
+    correction moved it to: a point ``x`` of the box is given ``old_net(x - d(x))``, ``d`` the
+    displacement of the moved observed points nearest to ``x`` (``pairs``, inverse-distance
+    weighted over 8), so a map that no one rigid motion corrects (drift that grew along the
+    walk) is warped point by point. ``steps`` steps of Adam on an L1 loss, 1,024 points each,
+    drawn about the observed surfaces (5 cm) and along the observed rays (15 cm). Returns the
+    last steps' mean loss (m). Training then goes on from the corrected keyframes."""
+    from scipy.spatial import cKDTree
+
+    P = np.concatenate([p for p, _ in pairs])
+    Q = np.concatenate([q for _, q in pairs])
+    rng = np.random.default_rng(seed)
+    n = steps * DISTIL_BATCH
+    surf = Q[3::4] if len(Q) >= 4 else Q  # _ray_points: 4 per ray, the last on the surface
+    x = np.concatenate([surf[rng.integers(len(surf), size=n // 2)] + rng.normal(0, 0.05, (n // 2, 3)),
+                        Q[rng.integers(len(Q), size=n - n // 2)] + rng.normal(0, 0.15, (n - n // 2, 3))])
+    x = x[pipe.grid.inside(c, x)]
+    if len(x) < DISTIL_BATCH:
+        return float("nan")
+    rng.shuffle(x)
+    dist, nn = cKDTree(Q).query(x, k=min(8, len(Q)))
+    dist, nn = np.atleast_2d(dist.T).T, np.atleast_2d(nn.T).T
+    w = 1.0 / np.maximum(dist, 1e-3)
+    d = np.einsum("nk,nkj->nj", w / w.sum(1, keepdims=True), (Q - P)[nn])
+    dev = next(net.parameters()).device
+    with torch.no_grad():
+        y = torch.cat([old_net(torch.as_tensor(x[i:i + 65536] - d[i:i + 65536], dtype=torch.float32, device=dev))
+                       for i in range(0, len(x), 65536)])
+    xt = torch.as_tensor(x, dtype=torch.float32, device=dev)
+    opt = torch.optim.Adam(net.parameters(), lr=DISTIL_LR)
+    losses = []
+    for i in range(0, len(x) - DISTIL_BATCH + 1, DISTIL_BATCH):
+        loss = (net(xt[i:i + DISTIL_BATCH]) - y[i:i + DISTIL_BATCH]).abs().mean()
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+        losses.append(float(loss.detach()))
+    return float(np.mean(losses[-10:]))
+
+
 def reset_network(pipe, sm) -> None:
     """A fresh network for the submap (its configuration: seed and encoding centre), new
     AdamW state and step count, the same keyframe store."""
@@ -408,6 +518,7 @@ def repose_submaps(pipe, corrections: dict) -> ReposeResult:
     rebuild_knowledge(pipe.intake, [sf.frame for sf in pipe.frames.values()], res.timings_ms, res.old_poses)
     changed: set = set()
     resets: set = set()  # submaps one of whose keyframes moved beyond repose_reset_m
+    held_by = {c: list(sm.seen_by) for c, sm in pipe.submaps.items()}  # what each network learnt from
     if pipe.grid is not None:
         t = time.perf_counter()
         rank = {k: i for i, k in enumerate(pipe.frames)}
@@ -450,9 +561,25 @@ def repose_submaps(pipe, corrections: dict) -> ReposeResult:
                 _remove_submap(pipe, c)
                 res.removed.append(sm.id)
                 continue
-            if s.repose_networks == "reset" and c in resets:
+            pairs = submap_pairs(pipe, c, held_by.get(c, []), before, after) if c in resets else []
+            if s.repose_networks == "move" and c in resets:
+                T, resid = submap_motion(pairs)
+                if T is not None and resid <= s.repose_reset_m:
+                    if not np.allclose(T, np.eye(4), rtol=0.0, atol=SAME_POSE_ATOL):  # else what it learnt stays
+                        move_network(sm.trainer.net, T)
+                        sm.trainer.relearn()
+                        res.moved.append(sm.id)
+                    sm.published_step = -1  # at its corrected place already: published with the next map
+                    continue
+            if s.repose_networks in ("reset", "move") and c in resets:
+                old_net = sm.trainer.net
                 reset_network(pipe, sm)
                 res.reset.append(sm.id)
+                if s.repose_networks == "move" and s.repose_distill_steps and sum(len(p) for p, _ in pairs) >= MOVE_MIN_POINTS:
+                    td = time.perf_counter()
+                    distill_network(pipe, c, sm.trainer.net, old_net, pairs, s.repose_distill_steps,
+                                    seed=int(sm.trainer.cfg.seed))
+                    res.timings_ms["distill"] = res.timings_ms.get("distill", 0.0) + 1e3 * (time.perf_counter() - td)
             if s.repose_steps:  # trained first, a fresh network held back until then (retrain_pick)
                 pipe.retraining[c] = max(pipe.retraining.get(c, 0), s.repose_steps)
             sm.published_step = -1  # published with the next map (a fresh network: once trained)

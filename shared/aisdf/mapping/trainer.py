@@ -103,6 +103,11 @@ class Trainer:
         since = self._steps - (self._newest_step if cfg.lr_decay_from == "keyframe" else 0)
         return cfg.lr_settle + (cfg.lr - cfg.lr_settle) * 0.5 ** (since / cfg.lr_halflife_steps)
 
+    def relearn(self) -> None:
+        """The rate goes back up as for a new keyframe (``learning_rate``), and settles again:
+        after the network was moved (a pose correction), so that it follows what is left."""
+        self._store_size, self._newest_step = (len(self.store), self.store.dropped), self._steps
+
     def _sync(self) -> None:
         if self.device.type == "cuda":
             torch.cuda.synchronize(self.device)

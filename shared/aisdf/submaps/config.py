@@ -39,12 +39,19 @@ class SubmapConfig(Model):
                                           "it has this many unpublished steps ...")
     background_publish_periods: int = Field(10, ge=1, description="... or this many publications after its first "
                                             "unpublished step; submaps in view and new ones go out at once")
-    repose_networks: Literal["reset", "keep"] = Field("reset", description="after a pose correction (protocol "
-                                                      "1.11), a submap whose keyframes changed: reset = a fresh "
-                                                      "network trained on the corrected keyframes (the old surfaces "
-                                                      "go at once); keep = the old network trained on")
+    repose_networks: Literal["move", "reset", "keep"] = Field("move", description="after a pose correction "
+                                                              "(protocol 1.11), a submap whose keyframes changed: "
+                                                              "move = its network moved rigidly with them (the "
+                                                              "motion fitted to their observed points in its box), "
+                                                              "or reset when no one motion carries them within "
+                                                              "repose_reset_m; reset = a fresh network trained on "
+                                                              "the corrected keyframes (the old surfaces go at "
+                                                              "once); keep = the old network trained on")
     repose_reset_m: float = Field(0.1, ge=0, description="... (reset only when one of its keyframes' observed "
                                   "points moved by more than this, m: a smaller correction keeps the network) ...")
+    repose_distill_steps: int = Field(200, ge=0, description="... with move, a reset network first learns the "
+                                      "old one's field warped by the correction, point by point, in this many "
+                                      "steps (0: a fresh network only)")
     repose_steps: int = Field(30, ge=0, description="... and trained this many steps at once, before the corrected "
                               "map is published")
     measured: bool = Field(True, description="pool the keyframes' depth pixels into 10 cm voxels and publish, with "
