@@ -29,8 +29,7 @@ from .atlanta import AtlantaConfig, AtlantaEstimator, AtlantaFrame
 from ..mapping.frames import Frame
 from .surfel_map import GlobalSurfelMap, SurfelMapConfig
 from .surfel_types import Surfels
-from .surfels import (KeyframePoints, SurfelConfig, extract_surfels, keyframe_points, surfel_mask,
-                      surfels_of_points)
+from .surfels import KeyframePoints, SurfelConfig, extract_surfels, keyframe_points, surfels_of_points
 
 
 class Structure:
@@ -93,12 +92,12 @@ class Structure:
         return out
 
     def extract_again(self, frame: Frame) -> None:
-        """Fits ``frame.surfels`` (and ``surfel_mask``) and ``frame.late_surfels`` afresh from
-        its depth at its (corrected) pose, each on the directions it lay on before (so the
-        directions it supported on arrival, and those published after it), as the current
-        frame has them, without touching the frame estimate or the global map: surfels fitted
-        at a drifted pose, on directions averaged from drifting normals, keep a tilt of their
-        own once moved. Random numbers seeded by the keyframe (repeatable)."""
+        """Fits ``frame.surfels`` (and ``surfel_mask``) afresh from its depth at its (corrected)
+        pose, on every published direction of the current frame, without touching the frame
+        estimate or the global map: surfels fitted at a drifted pose, on directions averaged
+        from drifting normals, keep a tilt of their own once moved. Its late surfels are then
+        among them (``late_surfels`` is cleared). A keyframe that gave no surfel gives none.
+        Random numbers seeded by the keyframe (repeatable)."""
         own, late = frame.surfels, frame.late_surfels
         if not self.estimator.initialised or not ((own is not None and len(own)) or (late is not None and len(late))):
             return
@@ -106,20 +105,10 @@ class Structure:
         valid = valid_depth(depth, self.max_depth)
         if not valid.all():
             depth = np.where(valid, depth, 0.0).astype(np.float32)
-        kp = keyframe_points(depth, frame.K, frame.T_WC, self.surfel_cfg)
-        f = self.estimator.frame
-        for which, old in (("own", own), ("late", late)):
-            if old is None or not len(old):
-                continue
-            rng = np.random.default_rng([int(frame.frame_id) & 0x7FFFFFFF, 7 if which == "own" else 8])
-            S = surfels_of_points(kp, f, self.surfel_cfg, rng, frame.frame_id,
-                                  directions={int(d) for d in np.unique(old.direction)})
-            if which == "late":
-                frame.late_surfels = S
-                continue
-            frame.surfels = S
-            frame.surfel_mask = (surfel_mask(depth, frame.K, frame.T_WC, S, self.surfel_cfg, kp.stride) if len(S)
-                                 else np.zeros(depth.shape, dtype=bool))
+        rng = np.random.default_rng([int(frame.frame_id) & 0x7FFFFFFF, 7])
+        frame.surfels, frame.surfel_mask = extract_surfels(depth, frame.K, frame.T_WC, self.estimator.frame,
+                                                           self.surfel_cfg, rng, frame.frame_id)
+        frame.late_surfels = None
 
     def follow_corrections(self, frames: list, moved: dict) -> dict[int, float]:
         """After a pose correction (``moved``: key -> the old pose; ``frames`` the stored ones at
