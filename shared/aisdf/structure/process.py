@@ -53,10 +53,7 @@ class Structure:
         (``atlanta``: points, normals and the frame update; ``surfels``: extraction, mask
         and the global merge)."""
         t0 = time.perf_counter()
-        depth = frame.depth
-        valid = valid_depth(depth, self.max_depth)
-        if not valid.all():  # the mapper's rule: no surfel or normal from a pixel it would not train on
-            depth = np.where(valid, depth, 0.0).astype(np.float32)
+        depth = self._depth(frame)
         kp = keyframe_points(depth, frame.K, frame.T_WC, self.surfel_cfg)
         before = self._published()
         local = self.estimator.update(kp.normals_W, frame.T_WC)
@@ -70,6 +67,13 @@ class Structure:
         t2 = time.perf_counter()
         self.n_keyframes += 1
         return {"atlanta": 1e3 * (t1 - t0), "surfels": 1e3 * (t2 - t1)}
+
+    def _depth(self, frame: Frame) -> np.ndarray:
+        """The frame's depth in metres, 0 where ``valid_depth`` (with ``max_depth``) says no: the
+        mapper's rule, no surfel or normal from a pixel it would not train on."""
+        depth = frame.metres()
+        valid = valid_depth(depth, self.max_depth)
+        return depth if valid.all() else np.where(valid, depth, 0.0).astype(np.float32)
 
     def _published(self) -> set[int]:
         """The direction indices published so far (-1: the vertical, once initialised)."""
@@ -101,10 +105,7 @@ class Structure:
         own, late = frame.surfels, frame.late_surfels
         if not self.estimator.initialised or not ((own is not None and len(own)) or (late is not None and len(late))):
             return
-        depth = frame.metres()
-        valid = valid_depth(depth, self.max_depth)
-        if not valid.all():
-            depth = np.where(valid, depth, 0.0).astype(np.float32)
+        depth = self._depth(frame)
         rng = np.random.default_rng([int(frame.frame_id) & 0x7FFFFFFF, 7])
         frame.surfels, frame.surfel_mask = extract_surfels(depth, frame.K, frame.T_WC, self.estimator.frame,
                                                            self.surfel_cfg, rng, frame.frame_id)
