@@ -348,3 +348,38 @@ def test_a_network_started_again_first_learns_the_old_field_where_it_was_kept(se
 
     taught, fresh = run(200), run(0)  # measured: 2.5 and 10.5 cm
     assert taught < 0.5 * fresh, (taught, fresh)
+
+
+def _floor_axis_indices(S, frame) -> set[int]:
+    """The Atlanta horizontals (indices, modulo 90 degrees) that ``S``'s horizontal rectangles
+    are aligned with."""
+    if S is None or not len(S):
+        return set()
+    a = np.asarray(S.axis1)[np.asarray(S.direction) < 0]
+    if not len(a):
+        return set()
+    H = np.asarray(frame.horizontal).reshape(-1, 3)
+    c = np.abs(a @ H.T)
+    s = np.abs(np.cross(a[:, None], H[None]) @ np.asarray(frame.vertical))
+    return set(np.argmax(np.maximum(c, s), axis=1).tolist())
+
+
+def test_a_keyframe_fitted_again_keeps_the_floor_axes_it_chose_on_arrival():
+    """A table seen in part on arrival, fitted again after a correction, does not turn its
+    rectangle to a wall direction published since (it would overhang the table's edges)."""
+    seq = SyntheticSequence(building="office", n_frames=240, H=90, W=120, seed=1)
+    p = make_mapper("submaps", "cpu", SMALL, keyframes=POLICY, submaps={"repose_steps": 3, "cell_m": 3.0})
+    for i in range(0, 240, 6):
+        p.add_keyframe(keyframe_message(seq.frame(i)))
+    frame = p.intake.structure.atlanta_frame()
+    assert len(frame.horizontal) >= 2  # the office's angled wall is published during the walk
+    frames = {k: sf.frame for k, sf in p.frames.items()}
+    before = {k: _floor_axis_indices(f.surfels, frame) | _floor_axis_indices(f.late_surfels, frame)
+              for k, f in frames.items()}
+    D = np.eye(4)
+    D[:3, 3] = [0.01, 0.0, 0.0]
+    p.repose({k: D @ np.asarray(f.T_WC) for k, f in frames.items()})
+    after = {k: _floor_axis_indices(f.surfels, frame) for k, f in frames.items()}
+    assert sum(1 for k in frames if before[k]) >= 20
+    turned = [k for k in frames if before[k] and not after[k] <= before[k]]
+    assert turned == []

@@ -108,8 +108,26 @@ class Structure:
         depth = self._depth(frame)
         rng = np.random.default_rng([int(frame.frame_id) & 0x7FFFFFFF, 7])
         frame.surfels, frame.surfel_mask = extract_surfels(depth, frame.K, frame.T_WC, self.estimator.frame,
-                                                           self.surfel_cfg, rng, frame.frame_id)
+                                                           self.surfel_cfg, rng, frame.frame_id,
+                                                           floor_axes=self._floor_axes(own, late))
         frame.late_surfels = None
+
+    def _floor_axes(self, *old: Surfels | None) -> np.ndarray | None:
+        """The current frame's horizontals that a keyframe's horizontal surfels (``old``, moved
+        with its pose) were aligned with (each axis to the nearest, modulo 90 degrees); None
+        when it had no horizontal surfel (then every horizontal is a candidate)."""
+        f = self.estimator.frame
+        H = np.asarray(f.horizontal, np.float64).reshape(-1, 3)
+        axes = [np.asarray(S.axis1, np.float64)[np.asarray(S.direction) < 0] for S in old if S is not None and len(S)]
+        axes = np.concatenate(axes) if axes else np.zeros((0, 3))
+        if not len(axes) or not len(H):
+            return None
+        v = np.asarray(f.vertical, np.float64)
+        # the axial angle modulo 90 degrees: |cos| or |sin| of the angle between them, in the floor
+        c = np.abs(axes @ H.T)
+        s = np.abs(np.cross(axes[:, None], H[None]) @ v)
+        near = np.argmax(np.maximum(c, s), axis=1)
+        return H[np.unique(near)]
 
     def follow_corrections(self, frames: list, moved: dict) -> dict[int, float]:
         """After a pose correction (``moved``: key -> the old pose; ``frames`` the stored ones at

@@ -73,12 +73,13 @@ def _directions(atlanta: AtlantaFrame | LocalAtlanta) -> tuple[np.ndarray, np.nd
 
 def extract_surfels(depth: np.ndarray, K: np.ndarray, T_WC: np.ndarray, atlanta: AtlantaFrame | LocalAtlanta,
                     config: SurfelConfig | None = None, rng: np.random.Generator | None = None,
-                    frame_id: int = -1, points: KeyframePoints | None = None) -> tuple[Surfels, np.ndarray]:
+                    frame_id: int = -1, points: KeyframePoints | None = None,
+                    floor_axes: np.ndarray | None = None) -> tuple[Surfels, np.ndarray]:
     """Surfels (world frame) and the (H, W) bool surfel mask of one keyframe.
 
     ``atlanta``: the keyframe's LocalAtlanta (only the directions it supports) or the
     global AtlantaFrame (all directions). ``points``: keyframe_points(...) if already
-    computed (e.g. for the Atlanta update).
+    computed (e.g. for the Atlanta update). ``floor_axes``: :func:`surfels_of_points`.
     """
     cfg = config or SurfelConfig()
     depth = np.asarray(depth, dtype=np.float64)
@@ -86,7 +87,7 @@ def extract_surfels(depth: np.ndarray, K: np.ndarray, T_WC: np.ndarray, atlanta:
     if not frame.valid or (isinstance(atlanta, LocalAtlanta) and not atlanta.initialised):
         return Surfels(), np.zeros(depth.shape, dtype=bool)
     kp = points if points is not None else keyframe_points(depth, K, T_WC, cfg)
-    surfels = surfels_of_points(kp, atlanta, cfg, rng, frame_id)
+    surfels = surfels_of_points(kp, atlanta, cfg, rng, frame_id, floor_axes=floor_axes)
     if len(surfels) == 0:
         return surfels, np.zeros(depth.shape, dtype=bool)
     return surfels, surfel_mask(depth, K, T_WC, surfels, cfg, kp.stride)
@@ -94,13 +95,18 @@ def extract_surfels(depth: np.ndarray, K: np.ndarray, T_WC: np.ndarray, atlanta:
 
 def surfels_of_points(kp: KeyframePoints, atlanta: AtlantaFrame | LocalAtlanta, config: SurfelConfig | None = None,
                       rng: np.random.Generator | None = None, frame_id: int = -1,
-                      directions: set[int] | None = None) -> Surfels:
+                      directions: set[int] | None = None, floor_axes: np.ndarray | None = None) -> Surfels:
     """Steps 2-4 on a keyframe's points: its surfels (world frame), no mask.
 
     ``directions``: extract only the planes of these direction indices (-1 the vertical,
     k ``horizontal[k]``; None: all of ``atlanta``'s). Every point still goes to the nearest of
     all of ``atlanta``'s directions, so a point of another wall never joins these planes
     (the mapper uses this for the keyframes that came before a direction was published).
+    ``floor_axes``: (K, 3) the horizontals a floor's or a table's rectangle may be aligned
+    with (``floor_axes: best``; None: every Atlanta horizontal). A keyframe fitted again
+    after a pose correction keeps the axes it chose on arrival
+    (``Structure.extract_again``): a partial view of a table is boxed more tightly along a
+    wall direction published since, and its rectangle then overhangs the table's edges.
     """
     cfg = config or SurfelConfig()
     rng = rng or np.random.default_rng(frame_id if frame_id >= 0 else 0)
@@ -108,7 +114,8 @@ def surfels_of_points(kp: KeyframePoints, atlanta: AtlantaFrame | LocalAtlanta, 
     if not frame.valid or (isinstance(atlanta, LocalAtlanta) and not atlanta.initialised):
         return Surfels()
     V, dir_idx, ref = _directions(atlanta)
-    floor_cands = [ref, *np.asarray(frame.horizontal).reshape(-1, 3)]
+    floor_cands = ([*np.asarray(floor_axes, np.float64).reshape(-1, 3)] if floor_axes is not None and len(floor_axes)
+                   else [ref, *np.asarray(frame.horizontal).reshape(-1, 3)])
     vert = V[0]
     P = len(kp.points_W)
     if P == 0:
