@@ -84,7 +84,7 @@ def test_three_mapper_shards_share_a_map_survive_a_kill_and_take_in_a_joiner(tmp
         with transport.open_session(st.client_zenoh) as s:
             sub = s.declare_subscriber(keys.key(NS, keys.MAP_SUBMAPS) + "/*", on_submap)
             wait_for(lambda: (lambda i: len(i) == 3 and all(len(v["cluster"]["members"]) == 3 for v in i.values()))(
-                mapper_infos(s)), 60, what="three members")
+                mapper_infos(s)), 180, what="three members")  # three torch processes starting on 2 cores
             st.start(only=["frontend"])
             th = threading.Thread(target=planner, daemon=True)
             th.start()
