@@ -46,20 +46,20 @@ class Breakage:
 
 BREAKAGES = [
     Breakage("fused-without-measured", "the fused answer ignores the measured points (1.4/1.5's rule gone)",
-             "shared/aisdf/query/answer.py", "    if measured is None:\n        return sdf, grad\n",
-             "    if True:\n        return sdf, grad\n",
+             "shared/aisdf/query/answer.py", "    sdf, grad, _ = fuse(sdf_i, grad_i, d_e, g_e, radius)\n",
+             "    sdf, grad, _ = fuse(sdf_i, grad_i, d_e, g_e, radius)\n    measured = None\n",
              ("tests/mapper/test_pipeline.py::test_one_network_sends_its_measured_points_1_5",)),
     Breakage("fused-without-surfels", "the fused answer ignores the surfel map",
              "shared/aisdf/query/answer.py", "    if d_e is None:\n", "    if True:\n",
              ("tests/mapper/test_pipeline.py::test_one_network_sends_its_measured_points_1_5",)),
     Breakage("served-network-alone", "the served answer is the network alone (no surfels, no measured points)",
-             "shared/aisdf/query/answer.py", '    ``workers``: threads of the nearest-point search."""\n',
-             '    ``workers``: threads of the nearest-point search."""\n    return sdf_i, grad_i\n',
+             "shared/aisdf/query/answer.py", '    points (``predicted_layout``; None: no prior)."""\n',
+             '    points (``predicted_layout``; None: no prior)."""\n    return sdf_i, grad_i\n',
              ("tests/mapper/test_pipeline.py::test_one_network_sends_its_measured_points_1_5",
               "tests/mapper/test_pipeline.py::test_messages_and_query_engine_agree")),
     Breakage("demo-served-network-alone", "the same, against the demo's own test (a 75 s demo: minutes)",
-             "shared/aisdf/query/answer.py", '    ``workers``: threads of the nearest-point search."""\n',
-             '    ``workers``: threads of the nearest-point search."""\n    return sdf_i, grad_i\n',
+             "shared/aisdf/query/answer.py", '    points (``predicted_layout``; None: no prior)."""\n',
+             '    points (``predicted_layout``; None: no prior)."""\n    return sdf_i, grad_i\n',
              ("tests/e2e/test_e2e.py::test_demo_maps_the_synthetic_building",)),
     Breakage("submap-priors-empty", "surfel bounds off in submaps: every submap's prior holds no surfel",
              "shared/aisdf/structure/prior.py", "s = s[np.flatnonzero(d <= self.radius)]", "s = s[:0]",
@@ -77,8 +77,8 @@ BREAKAGES = [
              "        if req.source == \"fused\" and not req.exact and bk is not None:\n            state = newest\n",
              ("tests/query/test_baked.py",)),
     Breakage("fresh-under-load", "planners first gone: requests answered while others wait are freshened too",
-             "shared/aisdf/query/engine.py", "            if trails and not self.fresh_busy and self.waiting() > 0:",
-             "            if False:", ("tests/query/test_fresh.py", "tests/bench/test_load.py")),
+             "shared/aisdf/query/engine.py", "            elif trails and not self.fresh_busy and self.waiting() > 0:",
+             "            elif False:", ("tests/query/test_fresh.py", "tests/bench/test_load.py")),
     Breakage("new-space-not-first", "a re-bake no longer bakes the newly mapped space first",
              "shared/aisdf/query/baker.py", "        if previous is not None and st.submaps is not None and st.observed "
              "is not cur.state.observed:", "        if False:", ("tests/query/test_fresh.py",)),
@@ -94,8 +94,8 @@ BREAKAGES = [
              "            if False:  # a resend", ("tests/services/test_reliable_delivery.py",)),
     Breakage("acl-planner-answers-queries", "the access control gives planners the query service's rules on "
              "query/** (a planner can answer in its place)", "deploy/tls/router.json5",
-             'rules: ["read-maps", "receive-maps", "ask-queries", "receive-answers"] },',
-             'rules: ["read-maps", "receive-maps", "ask-queries", "receive-answers", "answer-queries", '
+             'rules: ["read-maps", "receive-maps", "ask-queries", "receive-answers", "watch-replicas"] },',
+             'rules: ["read-maps", "receive-maps", "ask-queries", "receive-answers", "watch-replicas", "answer-queries", '
              '"hear-queries"] },',
              ("tests/services/test_tls_acl.py::test_only_the_query_identity_can_answer_planners",)),
     Breakage("acl-rule-removed", "the access control loses the rule that lets the frontend hear acknowledgements",
