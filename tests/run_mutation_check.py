@@ -220,14 +220,20 @@ def copy_tree(dest: Path, worktree: bool) -> None:
         (shim / name).symlink_to(dest / rel, target_is_directory=True)
 
 
-def apply(dest: Path, b: Breakage) -> None:
-    path = dest / b.path
-    text = path.read_text()
-    n = text.count(b.old)
+def stale(root: Path, b: Breakage) -> str | None:
+    """Why breakage ``b`` no longer applies to the tree at ``root`` (None: it applies)."""
+    n = (root / b.path).read_text().count(b.old)
     if n != 1:
-        raise SystemExit(f"breakage {b.name}: the text to replace occurs {n} times in {b.path} (expected once); "
-                         "update the breakage to the product as it is now")
-    path.write_text(text.replace(b.old, b.new))
+        return f"breakage {b.name}: the text to replace occurs {n} times in {b.path} (expected once)"
+    return None
+
+
+def apply(dest: Path, b: Breakage) -> None:
+    why = stale(dest, b)
+    if why:
+        raise SystemExit(f"{why}; update the breakage to the product as it is now")
+    path = dest / b.path
+    path.write_text(path.read_text().replace(b.old, b.new))
 
 
 def run_tests(dest: Path, tests: tuple[str, ...], timeout: float, log: Path) -> tuple[int, int | None]:
