@@ -145,14 +145,11 @@ def walk_scene(name: str, args, out: Path, say) -> dict:
             walk_end = time.monotonic()
             wait_for(lambda: versions.first, 60, what="a map")  # (its arrival is recorded by the subscriber)
             sample("end of the walk", walk_end - t0)
-            k = 1
-            while time.monotonic() - walk_end < args.tail_s:
-                due = walk_end + k * args.sample_s
-                if due - walk_end > args.tail_s:
-                    break
-                time.sleep(max(0.0, due - time.monotonic()))
+            # Every due moment is sampled, even one a slow sample before it overran (on a loaded
+            # machine one sample can take longer than the spacing); t_s says when it was taken.
+            for k in range(1, int(args.tail_s / args.sample_s + 1e-9) + 1):
+                time.sleep(max(0.0, walk_end + k * args.sample_s - time.monotonic()))
                 sample(f"+{k * args.sample_s:g} s", time.monotonic() - t0)
-                k += 1
         finally:
             stop.set()
             for th in threads:
