@@ -44,7 +44,7 @@ from .surfel_types import Surfels
 @dataclass(frozen=True)
 class LayoutConfig:
     spacing: float = 0.05  # m between predicted points on a plane
-    min_area: float = 0.5  # m^2 of surfels for a plane to count
+    min_area: float = 0.1  # m^2 of surfels for a plane to count (small ones too: a wall seen in one corner still bounds the room)
     plane_tol: float = 0.05  # m: surfels whose offsets along one normal are this close share a plane
     reach: float = 1.5  # m beyond a plane's surfels, in the plane
     margin: float = 0.3  # m beyond the map's box
