@@ -116,3 +116,20 @@ def test_served_answer_is_capped_at_the_predicted_floor():
     np.testing.assert_array_equal(predicted_mask(layout, q, f), [True, False, False])
     f0, _ = served_answer(q, sdf_i, grad_i, None, None, None)
     np.testing.assert_array_equal(f0, sdf_i)  # no layout: the network's
+
+
+def test_a_wall_seen_only_in_a_corner_still_bounds_the_room():
+    """A wall a camera framed only at its edge (0.3 x 0.6 m of surfels, 0.18 m^2) is carried on
+    into the space beyond the seen x <= 2 as the big walls are; a plane needs 0.1 m^2 of surfels
+    (a 0.5 m^2 bar left most of a room's walls out of the layout on a walk that saw them in
+    pieces)."""
+    r = room_surfels(cabinet_top=True)
+    keep = ~((np.abs(r.center[:, 1] - 4.0) < 1e-9) & (np.abs(r.normal[:, 1] + 1) < 1e-9))
+    small = rect((1.85, 4.0, 1.3), -Y, X, Z, 0.3, 0.6, 0)
+    s = Surfels(**{k: np.concatenate([getattr(r, k)[keep], np.asarray([small[k]], float)])
+                   for k in small}, keyframe=np.zeros(int(keep.sum()) + 1))
+    assert round(min(p.area for p in planes(s, 0.05) if abs(p.normal @ Y) > 0.9), 3) == 0.18
+    wall4 = lambda p: on_plane(p, Y, 4.0) & (p[:, 0] > 2.0) & (p[:, 2] > 0.01) & (p[:, 2] < 2.59)
+    p = predict(s, room_observed(), BOX, Z)
+    assert wall4(p).sum() > 600 and p[wall4(p), 0].max() <= 3.5 + 0.05
+    assert not wall4(predict(s, room_observed(), BOX, Z, LayoutConfig(min_area=0.5))).any()
