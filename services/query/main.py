@@ -279,7 +279,11 @@ class QueryNode:
     def info(self) -> dict:
         st, bk = self.engine.state, self.engine.baked
         return {"v": protocol.VERSION, "replica": self.replica_id, "version": st.version if st else None, "epoch": st.epoch if st else None,
-                "baked_version": bk.state.version if bk else None, "bakes": self.engine.baker.bakes,
+                "baked_version": bk.state.version if bk else None,
+                # 1.19: the surfel map versions held and baked (a bake of weights alone keeps its
+                # map version when the surfels arrive after it)
+                "surfel_version": st.surfel_version if st else None,
+                "baked_surfel_version": bk.state.surfel_version if bk else None, "bakes": self.engine.baker.bakes,
                 "bake_extensions": self.engine.baker.extensions,
                 "bake_failures": self.engine.baker.failures, "last_bake": self.engine.baker.last,
                 "lag": self.engine.lag(), "answered": self.answered, "errors": self.errors, "busy": self.busy,

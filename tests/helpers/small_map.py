@@ -29,7 +29,8 @@ def train_small_map(measured: bool = True):
 
 def publish_until_baked(session, ns: str, snap, smap, timeout: float = 90.0) -> None:
     """Put the map (``smap``'s surfels first, then ``snap``'s weights) on ``ns`` with a plain
-    Zenoh session, again every 2 s, until the query service there has baked version 1."""
+    Zenoh session, again every 2 s, until the query service there has baked version 1 with
+    ``smap``'s surfels (the weights can arrive first and be baked alone)."""
     import time
 
     import stranger_client as sc
@@ -42,6 +43,7 @@ def publish_until_baked(session, ns: str, snap, smap, timeout: float = 90.0) -> 
             time.sleep(0.2)
         session.put(f"{ns}/map/weights", protocol.pack(snap.to_msg()), encoding=sc.ENC)
         status, msg = sc.request(session, f"{ns}/info/query", {"v": 1}, 2.0)
-        return status == "ok" and msg.get("baked_version") == 1
+        return (status == "ok" and msg.get("baked_version") == 1
+                and (smap is None or msg.get("baked_surfel_version") == smap.version))  # the surfels in it too
 
     wait_for(baked, timeout, period=2.0, what="the map to be baked")
