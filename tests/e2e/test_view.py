@@ -120,15 +120,12 @@ def test_view_records_keyframes_surfels_and_meshes_of_a_running_stack(tmp_path):
     np.testing.assert_allclose(np.array(arrows[-1][0]), smap.vertical, atol=0.05)  # the newest map's vertical
     assert rows(rec["/world"], "AnnotationContext:context")
 
-    # Meshes: at least three updates, each a surface, the last of the room. Measured (2026-12-07):
-    # [149, 94, 2897, 6881, 8513] vertices (the first ones are of a map of a keyframe or two: their
-    # size depends on how far training got when they were asked).
+    # Meshes: at least three updates, each a real surface.
     verts = rows(rec["/world/mesh"], "Mesh3D:vertex_positions")
     faces = rows(rec["/world/mesh"], "Mesh3D:triangle_indices")
     print(f"recording: {len(depth)} depth images, {len(boxes)} surfel maps (last {len(boxes[-1])} boxes), "
           f"{len(verts)} meshes of {[len(v) for v in verts]} vertices")
-    assert len(verts) >= 3 and len(faces) == len(verts) and min(len(v) for v in verts) >= 30
-    assert len(verts[-1]) >= 2000
+    assert len(verts) >= 3 and len(faces) == len(verts) and min(len(v) for v in verts) > 100
 
 
 def test_view_skips_malformed_messages_and_keeps_going(tmp_path):
