@@ -117,10 +117,13 @@ def walk_scene(name: str, args, out: Path, say) -> dict:
             th.start()
 
         def sample(label: str, t_rel: float) -> dict:
-            for _ in range(5):  # the two answers of one map: a new one may arrive between them
-                exact = client.query(pts, exact=True)
+            # The two answers of one map: a new one may arrive between them (on a loaded machine a
+            # map a second), so ask again; the served one is asked first, so that it is never of a
+            # newer map than the exact one beside it.
+            for _ in range(10):
                 served = client.query(pts)
-                if served.map_version <= exact.map_version:
+                exact = client.query(pts, exact=True)
+                if served.map_version == exact.map_version:
                     break
             s = {"at": label, "t_s": round(t_rel, 1), "served_cm": round(100 * float(np.mean(np.abs(served.sdf - gt))), 3),
                  "exact_cm": round(100 * float(np.mean(np.abs(exact.sdf - gt))), 3),
