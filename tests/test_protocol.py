@@ -126,7 +126,11 @@ def test_sdf_request_reply_roundtrip():
     b = Q.SdfReply.from_msg(roundtrip(rep.to_msg()))
     assert b.map_version == 3 and b.gradient.shape == (10, 3) and b.collision.shape == (10,)
     b = Q.SdfReply.from_msg(roundtrip(Q.SdfReply(1, np.zeros(2, np.float32)).to_msg()))
-    assert b.gradient is None and b.collision is None and b.unknown is None
+    assert b.gradient is None and b.collision is None and b.unknown is None and b.surfel_version is None
+    # 1.19: the surfel map behind the values, only when said; not an integer: refused
+    assert Q.SdfReply.from_msg(roundtrip(Q.SdfReply(1, np.zeros(2, np.float32), surfel_version=4).to_msg())).surfel_version == 4
+    with pytest.raises(P.ProtocolError):
+        Q.SdfReply.from_msg({**Q.SdfReply(1, np.zeros(2, np.float32)).to_msg(), "surfel_version": "4"})
     # 1.6: "unknown" only when asked, both ways; absent from a request that does not ask.
     assert "unknown" not in Q.SdfRequest(pts).to_msg()
     assert Q.SdfRequest.from_msg(roundtrip(Q.SdfRequest(pts, unknown=True).to_msg())).unknown

@@ -181,7 +181,7 @@ class SdfClient:
         return query_messages.SdfReply(first.map_version, cat("sdf"), cat("gradient"), cat("collision"), cat("observed"),
                                  all(p.baked for p in parts), first.map_epoch, cat("unknown"),
                                  max(p.map_age_s or 0.0 for p in parts) if first.map_age_s is not None else None,
-                                 None, cat("predicted"))
+                                 None, cat("predicted"), first.surfel_version)
 
     def box(self, min_corner, size, resolution: float, gradient: bool = False, observed: bool = False,
             unknown: bool = False, exact: bool = False, source: str = "fused",

@@ -198,6 +198,7 @@ class SdfReply:
     map_age_s: float | None = None  # seconds since the map state behind the values arrived (1.7)
     box: Box | None = None  # the request's lattice (1.9); the arrays are its samples in C order
     predicted: np.ndarray | None = None  # (N,) bool, when asked (1.13): the distance is to a predicted surface
+    surfel_version: int | None = None  # the surfel map behind the values (1.19; -1: none; None: not said)
 
     def grid(self, name: str = "sdf") -> np.ndarray:
         """A box reply's array as a grid: (nx, ny, nz) (gradient: (nx, ny, nz, 3))."""
@@ -223,6 +224,8 @@ class SdfReply:
             msg["box"] = self.box.to_msg()
         if self.predicted is not None:
             msg["predicted"] = encode_array(np.asarray(self.predicted, dtype=np.uint8), "|u1")
+        if self.surfel_version is not None:
+            msg["surfel_version"] = int(self.surfel_version)
         return msg
 
     @classmethod
@@ -242,7 +245,8 @@ class SdfReply:
             raise _bad(f"a reply's box of {list(box.shape)} samples carries {n} distances")
         pred = (decode_array(msg["predicted"], "predicted", ("|u1",), (n,)).astype(bool) if "predicted" in msg
                 else None)
-        return cls(mv, sdf, grad, coll, obs, baked, epoch, unk, None if age is None else float(age), box, pred)
+        sv = _get(msg, "surfel_version", int, None, "an integer") if "surfel_version" in msg else None
+        return cls(mv, sdf, grad, coll, obs, baked, epoch, unk, None if age is None else float(age), box, pred, sv)
 
 
 @dataclass

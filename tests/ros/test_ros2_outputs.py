@@ -162,6 +162,7 @@ def test_ros2_outputs_end_to_end():
             publish_until_baked(s, NS, snap, smap)  # the surfels first: the first bake holds them
             wait_for(lambda: out.surfel_map is not None, 10, what="the surfel map")
             out.tick()
+            assert out.baked == (0, 1, smap.version)  # the bake's map and surfel map (1.19), from the probe
             assert out.counts["grids"] == 1 and out.counts["surfel_maps"] == 1 and out.counts["meshes"] == 1
             # Nothing changed: nothing is sampled again.
             tiles = out.counts["tiles"]
@@ -356,3 +357,14 @@ def test_the_grid_follows_the_submaps_that_changed_and_the_bake_catching_up():
     sampled.clear()
     out.index = index(9, {"0_0_0": 9, "2_0_0": 7}, epoch=2)
     assert out.refresh_grid(40.0, (2, 9)) and set(sampled) == every  # the periodic refresh (30 s)
+    # Surfels that reached the node before the bake holds them (1.19's surfel version of the
+    # bake): the tiles sampled then are sampled again once the bake holds them.
+    sampled.clear()
+    out.surfel_map = protocol.SurfelMap(2, 0.0, np.array([0, 0, 1.0]), np.zeros((0, 3)), room())
+    out.index = index(10, {"0_0_0": 10, "2_0_0": 7}, epoch=2)
+    assert out.refresh_grid(41.0, (2, 10, 1)) and sampled  # the bake still holds surfel map 1
+    first = set(sampled)
+    sampled.clear()
+    assert out.refresh_grid(42.0, (2, 10, 2)) and set(sampled) == first
+    sampled.clear()
+    assert not out.refresh_grid(43.0, (2, 10, 2)) and not sampled

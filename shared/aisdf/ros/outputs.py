@@ -99,7 +99,7 @@ class MapOutputs:
         self.last_grid: np.ndarray | None = None
         self.took: dict[str, float] = {}  # seconds the last publication of each took
         self.mesh_times: list[float] = []  # seconds each mesh of the mesh thread took
-        self.baked: tuple[int, int] | None = None  # (epoch, version) the bake answers for, at the last tick
+        self.baked: tuple | None = None  # (epoch, version, surfel version) the bake answers for, at the last tick
         self._decls = [self._follow(keys.MAP_SURFELS, self._on_surfels), self._follow(keys.MAP_INDEX, self._on_index)]
 
     # ------------------------------------------------------------------ following the map
@@ -205,14 +205,17 @@ class MapOutputs:
         obstacle[want], observed[want] = sl.obstacle, sl.observed
         return slices.Slice(obstacle, observed)
 
-    def probe(self) -> tuple[int, int]:
-        """(epoch, version) of the map behind the bake's answers (one point, fresh: false)."""
+    def probe(self) -> tuple:
+        """(epoch, version, surfel version) of the map behind the bake's answers (one point,
+        fresh: false). The surfel version (protocol 1.19; None from an older query service)
+        moves on its own when surfels that reached this node before the query service are
+        baked under the same map version."""
         rep = self._ask(query_messages.SdfRequest(np.zeros((1, 3), np.float32), fresh=False))
-        return rep.map_epoch, rep.map_version
+        return rep.map_epoch, rep.map_version, rep.surfel_version
 
-    def refresh_grid(self, now: float, baked: tuple[int, int]) -> bool:
+    def refresh_grid(self, now: float, baked: tuple) -> bool:
         """Re-sample what changed and publish the grid and the slice; True when published.
-        ``baked``: the (epoch, version) the bake answers for (:meth:`probe`)."""
+        ``baked``: the (epoch, version, surfel version) the bake answers for (:meth:`probe`)."""
         with self._lock:
             smap, idx = self.surfel_map, self.index
         if smap is None:
@@ -247,7 +250,9 @@ class MapOutputs:
         self.counts["tiles"] += len(dirty)
         # The submaps count as sampled only once the bake answers for the index's map: until
         # then the tiles held the bake's older values, and its catching up re-samples them.
-        if idx is not None and idx.epoch == baked[0] and baked[1] >= idx.version:
+        # (The same for the surfel map this node holds: their fused answers near moved surfels.)
+        surfels_baked = len(baked) < 3 or baked[2] is None or baked[2] >= smap.version
+        if idx is not None and idx.epoch == baked[0] and baked[1] >= idx.version and surfels_baked:
             self._index_seen = {sid: int(m["version"]) for sid, m in idx.submaps.items()}
         self.version = version
         self.publish_grid(lo, hi)
@@ -291,7 +296,7 @@ class MapOutputs:
         self.counts["surfel_maps"] += 1
         return True
 
-    def publish_mesh(self, now: float, baked: tuple[int, int]) -> bool:
+    def publish_mesh(self, now: float, baked: tuple) -> bool:
         if baked == self._mesh_sent or now - self._last_mesh < self.cfg.mesh_period_s:
             return False
         msg = transport.query(self.session, keys.key(self.cfg.namespace, keys.QUERY_MESH),
