@@ -184,9 +184,9 @@ def test_a_correction_without_counts_marks_the_space_again(seq):
 
 
 def test_a_batch_moving_most_of_the_map_pools_every_point_again(seq, monkeypatch):
-    import aisdf.mapper.repose as repose
+    import aisdf.mapper.repose_rebuild as rebuild
 
-    monkeypatch.setattr(repose, "FULL_SHARE", 0.0)
+    monkeypatch.setattr(rebuild, "FULL_SHARE", 0.0)
     right = build(seq, "single")
     p = build(seq, "single", WRONG)
     p.repose(corrections(seq))
