@@ -313,7 +313,6 @@ class MapperNode(CheckpointMixin, ControlMixin):
             s.declare_queryable(keys.key(self.ns, keys.MAP_SURFELS), self._latest_of(keys.MAP_SURFELS)),
             s.declare_queryable(keys.key(self.ns, keys.MAP_INDEX), self._latest_of(keys.MAP_INDEX)),
             s.declare_queryable(keys.key(self.ns, keys.MAP_SUBMAPS) + "/**", self._on_submaps_query),
-            transport.serve(s, keys.key(self.ns, INFO_KEY), self.info, allow_empty=True),
             transport.serve(s, keys.key(self.ns, mapfiles.SAVE_KEY), self.on_save, allow_empty=True),
             transport.serve(s, keys.key(self.ns, mapfiles.LOAD_KEY), self.on_load),
             transport.serve(s, keys.key(self.ns, keys.CONTROL_POSES), self.on_poses),
@@ -326,6 +325,8 @@ class MapperNode(CheckpointMixin, ControlMixin):
             self.shard.apply()  # a resumed map: only the regions this mapper ranks first for
         if self.pipeline.n_keyframes:
             self._publish()  # a resumed map is served at once
+        # info/mapper last: a mapper that answers it serves its (resumed) map already
+        self._decls.append(transport.serve(s, keys.key(self.ns, INFO_KEY), self.info, allow_empty=True))
         self._thread.start()
 
     def stop(self) -> None:
