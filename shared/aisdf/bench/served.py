@@ -82,6 +82,8 @@ def walk_scene(name: str, args, out: Path, say) -> dict:
         session = client._session
         qpid = st.procs["query"].pid
         wait_for(lambda: transport.get_latest(session, keys.key(ns, "info/mapper"), 1.0), 60, what="the mapper")
+        # (the planner asks from its first moment: a query service not up yet would not answer)
+        wait_for(lambda: transport.get_latest(session, keys.key(ns, "info/query"), 1.0), 60, what="the query service")
         rss0 = rss_mb(qpid)
         versions, stop = MapArrivals(session, ns), threading.Event()
         lags, ages, errors, rss, took = [], [], [], [], []
@@ -110,6 +112,8 @@ def walk_scene(name: str, args, out: Path, say) -> dict:
                 except protocol.ProtocolError as e:
                     if e.code != "no_map":
                         errors.append(e.code)
+                except TimeoutError:  # no reply: an error the planner sees (the thread goes on)
+                    errors.append("timeout")
                 stop.wait(max(0.0, args.planner_period_s - (time.monotonic() - t)))
 
         threads = [threading.Thread(target=poll_mapper, daemon=True), threading.Thread(target=planner, daemon=True)]
