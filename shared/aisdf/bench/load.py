@@ -139,7 +139,7 @@ def planners_beside_mapper(planners: int = 8, seconds: float = 60.0, n_points: i
                 try:
                     client.query(pts[:10])
                     return True
-                except protocol.ProtocolError:
+                except (protocol.ProtocolError, TimeoutError):  # no map yet; no query service up yet
                     return False
 
             wait_for(served, 120, period=0.5, what="a served map")
