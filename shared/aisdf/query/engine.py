@@ -282,7 +282,7 @@ class QueryEngine(MapIntake):
         if cached is not None and all(x is y for x, y in zip(cached[0], key)):
             return cached[1]
         st = Staleness.between(baked, newest, self.fuse_radius, added_only, bk.surfel_ref, self.baker.surfel_tol,
-                               self.baker.config.block)
+                               self.baker.config.block, bk.layout, None if added_only else self.baker.layout(newest))
         self._stale = (key, st)
         return st
 

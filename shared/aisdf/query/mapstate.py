@@ -130,11 +130,15 @@ class Staleness:
     radius: float = 0.0
     added_only: bool = False
     surfels_moved: object = None  # points -> bool (changes.surfel_dirty), or None
+    layout_moved: MeasuredPoints | None = None  # predicted layout points that moved (changes.layout_changes)
+    layout: MeasuredPoints | None = None  # the answer's predicted layout points
 
     @classmethod
     def between(cls, baked: MapState, newest: MapState, radius: float, added_only: bool = False,
-                surfel_ref: Surfels | None = None, surfel_tol: float = 0.0, align: float = 0.2) -> "Staleness":
-        from .changes import measured_changes, surfel_dirty
+                surfel_ref: Surfels | None = None, surfel_tol: float = 0.0, align: float = 0.2,
+                baked_layout: MeasuredPoints | None = None,
+                newest_layout: MeasuredPoints | None = None) -> "Staleness":
+        from .changes import layout_changes, measured_changes, surfel_dirty
 
         a, b = baked.submaps, newest.submaps
         if a is None or b is None or baked.epoch != newest.epoch or not a.grid.same_as(b.grid):
@@ -150,8 +154,13 @@ class Staleness:
         else:
             answer = newest
             moved_surfels = surfel_dirty(surfel_ref, newest.surfels, surfel_tol, radius + 0.05)[0]
+        # The newest surfels' predicted layout (1.13) may move far from any surfel that moved
+        # (planes extended until they meet): where a moved predicted point is the nearest, the
+        # answer changed (the baker's own rule for what a re-bake re-evaluates).
+        lay = newest_layout if not added_only else None
+        moved_layout = layout_changes(baked_layout, newest_layout) if not added_only else None
         return cls(baked, newest, answer, False, changed, measured_changes(a, answer.submaps, changed), radius,
-                   added_only, moved_surfels)
+                   added_only, moved_surfels, moved_layout, lay)
 
     def points(self, pts: np.ndarray) -> np.ndarray:
         """(N,) bool: the points to answer from ``answer``."""
@@ -172,6 +181,9 @@ class Staleness:
             rest = np.flatnonzero(~out)
             out[rest] = measured_dirty(self.moved, self.answer.measured, pts[rest], self.radius,
                                        support=FLOOR_SUPPORT)  # (1.15's floor: a surfel's support)
+        if self.layout_moved is not None and (~out).any():
+            rest = np.flatnonzero(~out)
+            out[rest] = measured_dirty(self.layout_moved, self.layout, pts[rest], self.radius + 0.05)
         return out
 
 
