@@ -157,10 +157,9 @@ class Staleness:
         # The newest surfels' predicted layout (1.13) may move far from any surfel that moved
         # (planes extended until they meet): where a moved predicted point is the nearest, the
         # answer changed (the baker's own rule for what a re-bake re-evaluates).
-        lay = newest_layout if not added_only else None
-        moved_layout = layout_changes(baked_layout, newest_layout) if not added_only else None
+        moved_layout = None if added_only else layout_changes(baked_layout, newest_layout)
         return cls(baked, newest, answer, False, changed, measured_changes(a, answer.submaps, changed), radius,
-                   added_only, moved_surfels, moved_layout, lay)
+                   added_only, moved_surfels, moved_layout, newest_layout)
 
     def points(self, pts: np.ndarray) -> np.ndarray:
         """(N,) bool: the points to answer from ``answer``."""
